@@ -1,0 +1,106 @@
+"""One acquisition from all receivers of a node, with the geometry needed to image it.
+
+This is the in-memory form of the interchange format described in docs/formats.md.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+DEFAULT_VELOCITY_M_S = 3130.0  # T(0,1) group velocity in steel (paper, section 2)
+
+
+class MeasurementError(ValueError):
+    """A measurement is malformed: missing fields, bad shapes, non-finite samples."""
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Traces [n_rx, n_samples] sampled at ``fs_hz``; sample 0 is at ``t0_s`` after excitation start.
+
+    Angles are in degrees on the pipe circumference, distances in millimetres.
+    ``tx_axial_mm`` is the Tx ring's axial position from the pipe end behind it; the Rx ring
+    sits ``tx_rx_distance_mm`` further along. Both pipe fields are optional (None when unknown).
+    """
+
+    traces: np.ndarray
+    fs_hz: float
+    t0_s: float
+    rx_angles_deg: np.ndarray
+    tx_angles_deg: np.ndarray
+    tx_rx_distance_mm: float
+    circumference_mm: float
+    velocity_m_s: float = DEFAULT_VELOCITY_M_S
+    excitation_hz: float = 85e3
+    cycles: int = 5
+    temperature_c: float = math.nan
+    pipe_length_mm: float | None = None
+    tx_axial_mm: float | None = None
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        traces = np.asarray(self.traces)
+        if traces.ndim != 2:
+            raise MeasurementError(f"traces must be 2-D [n_rx, n_samples], got shape {traces.shape}")
+        if traces.shape[0] < 1 or traces.shape[1] < 2:
+            raise MeasurementError(f"traces has no data: shape {traces.shape}")
+        if not np.all(np.isfinite(traces)):
+            bad = int(np.count_nonzero(~np.isfinite(traces)))
+            raise MeasurementError(f"traces contain {bad} NaN/inf samples")
+        object.__setattr__(self, "traces", traces.astype(np.float32, copy=False))
+        rx = np.atleast_1d(np.asarray(self.rx_angles_deg, dtype=np.float64))
+        tx = np.atleast_1d(np.asarray(self.tx_angles_deg, dtype=np.float64))
+        if rx.ndim != 1 or rx.shape[0] != traces.shape[0]:
+            raise MeasurementError(
+                f"rx_angles_deg has {rx.size} entries but traces has {traces.shape[0]} receivers"
+            )
+        if tx.ndim != 1 or tx.size < 1:
+            raise MeasurementError("tx_angles_deg must list at least one transmitter angle")
+        if not (np.all(np.isfinite(rx)) and np.all(np.isfinite(tx))):
+            raise MeasurementError("ring angles must be finite")
+        object.__setattr__(self, "rx_angles_deg", rx)
+        object.__setattr__(self, "tx_angles_deg", tx)
+        for name in ("fs_hz", "tx_rx_distance_mm", "circumference_mm", "velocity_m_s", "excitation_hz"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise MeasurementError(f"{name} must be a positive finite number, got {value!r}")
+            object.__setattr__(self, name, value)
+        t0 = float(self.t0_s)
+        if not math.isfinite(t0):
+            raise MeasurementError(f"t0_s must be finite, got {t0!r}")
+        object.__setattr__(self, "t0_s", t0)
+        cycles = int(self.cycles)
+        if cycles < 1 or cycles != self.cycles:
+            raise MeasurementError(f"cycles must be a positive integer, got {self.cycles!r}")
+        object.__setattr__(self, "cycles", cycles)
+        object.__setattr__(self, "temperature_c", float(self.temperature_c))
+        for name in ("pipe_length_mm", "tx_axial_mm"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = float(value)
+            if math.isnan(value):
+                object.__setattr__(self, name, None)
+                continue
+            if not (math.isfinite(value) and value >= 0):
+                raise MeasurementError(f"{name} must be a non-negative finite number, got {value!r}")
+            object.__setattr__(self, name, value)
+        if self.pipe_length_mm is not None and self.tx_axial_mm is not None:
+            if self.tx_axial_mm + self.tx_rx_distance_mm > self.pipe_length_mm:
+                raise MeasurementError(
+                    "the Rx ring (tx_axial_mm + tx_rx_distance_mm) lies beyond pipe_length_mm"
+                )
+
+    @property
+    def n_rx(self) -> int:
+        return int(self.traces.shape[0])
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.traces.shape[1])
+
+    @property
+    def outer_diameter_mm(self) -> float:
+        return self.circumference_mm / math.pi
