@@ -1,0 +1,446 @@
+"""Typed messages: one frozen dataclass per message type, packed little-endian with ``struct``.
+
+Messages know fields only. Requests have types 0x01-0x0F, their replies ``type | 0x80``;
+bulk data travels in :class:`BulkChunk` frames (0x90); any request may be answered by
+:class:`ErrorReply` (0xFF). See docs/protocol.md for the field tables.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import struct
+from dataclasses import dataclass
+from typing import ClassVar
+
+NODE_ID_BYTES = 16
+MAX_ERROR_DETAIL_BYTES = 64
+MAX_CHUNK_LIST = 512  # chunk indices one READ_* request may name
+
+
+class MessageError(ValueError):
+    """A payload does not match its message type (length, counts, field values)."""
+
+
+class UnknownMessageType(MessageError):
+    """The frame's message type is not part of this protocol version."""
+
+
+class ErrorCode(enum.IntEnum):
+    """Codes of ERROR replies (docs/protocol.md, "Error replies")."""
+
+    BAD_VERSION = 1
+    UNKNOWN_COMMAND = 2
+    MALFORMED = 3
+    BAD_ARGUMENT = 4
+    NO_SUCH_MEASUREMENT = 5
+    NO_BASELINE = 6
+    BUSY = 7
+    NO_SUCH_DI = 8
+    HARDWARE_FAULT = 9
+
+
+class MsgType(enum.IntEnum):
+    INFO = 0x01
+    STATUS = 0x02
+    CONFIGURE = 0x03
+    ACQUIRE = 0x04
+    READ_TRACES = 0x05
+    COMPUTE_DI = 0x06
+    READ_DI = 0x07
+    INFO_REPLY = 0x81
+    STATUS_REPLY = 0x82
+    CONFIGURE_REPLY = 0x83
+    ACQUIRE_REPLY = 0x84
+    TRACE_META = 0x85
+    COMPUTE_DI_REPLY = 0x86
+    DI_META = 0x87
+    BULK_CHUNK = 0x90
+    ERROR = 0xFF
+
+
+CAP_ON_BOARD_DI = 0x01
+CAP_BASELINE_SLOT = 0x02
+CAP_CHUNK_RETRANSMIT = 0x04
+
+
+@dataclass(frozen=True)
+class Message:
+    """Base: fixed fields packed with ``_STRUCT`` in declaration order, plus an optional tail."""
+
+    TYPE: ClassVar[int]
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<")
+
+    def _fixed(self) -> tuple:
+        return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
+
+    def _tail(self) -> bytes:
+        return b""
+
+    def encode(self) -> bytes:
+        """Payload bytes; raises :class:`MessageError` if a field does not fit its wire type."""
+        try:
+            return self._STRUCT.pack(*self._fixed()) + self._tail()
+        except struct.error as exc:
+            raise MessageError(f"{type(self).__name__}: {exc}") from exc
+
+    @classmethod
+    def decode(cls, payload: bytes) -> Message:
+        if len(payload) != cls._STRUCT.size:
+            raise MessageError(
+                f"{cls.__name__} payload is {len(payload)} bytes, expected {cls._STRUCT.size}"
+            )
+        return cls(*cls._STRUCT.unpack(payload))
+
+
+def _check_tail_len(cls: type, payload: bytes, need: int) -> None:
+    if len(payload) != need:
+        raise MessageError(f"{cls.__name__} payload is {len(payload)} bytes, expected {need}")
+
+
+def _pack_chunk_list(chunks: tuple[int, ...]) -> bytes:
+    if len(chunks) > MAX_CHUNK_LIST:
+        raise MessageError(f"{len(chunks)} chunk indices exceed {MAX_CHUNK_LIST}")
+    try:
+        return struct.pack(f"<H{len(chunks)}H", len(chunks), *chunks)
+    except struct.error as exc:
+        raise MessageError(f"chunk list: {exc}") from exc
+
+
+def _unpack_chunk_list(cls: type, payload: bytes, offset: int) -> tuple[int, ...]:
+    if len(payload) < offset + 2:
+        raise MessageError(f"{cls.__name__} payload is {len(payload)} bytes, too short")
+    (n,) = struct.unpack_from("<H", payload, offset)
+    if n > MAX_CHUNK_LIST:
+        raise MessageError(f"{cls.__name__} names {n} chunks, more than {MAX_CHUNK_LIST}")
+    _check_tail_len(cls, payload, offset + 2 + 2 * n)
+    return struct.unpack_from(f"<{n}H", payload, offset + 2)
+
+
+# ---------------------------------------------------------------- INFO (capability exchange)
+@dataclass(frozen=True)
+class InfoRequest(Message):
+    """HELLO: the host's supported protocol versions; the node answers with INFO_REPLY."""
+
+    TYPE: ClassVar[int] = MsgType.INFO
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<BB")
+    host_version_min: int = 1
+    host_version_max: int = 1
+
+
+@dataclass(frozen=True)
+class InfoReply(Message):
+    """Identity, capabilities, acquisition limits and ring geometry of the node."""
+
+    TYPE: ClassVar[int] = MsgType.INFO_REPLY
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct(f"<{NODE_ID_BYTES}sBBBBIIHHBBBBfIfffBB")
+    node_id: str
+    fw_major: int
+    fw_minor: int
+    fw_patch: int
+    protocol_version: int
+    capabilities: int
+    boot_id: int
+    max_frame_bytes: int
+    chunk_bytes: int
+    n_channels: int
+    adc_bits: int
+    decimation: int
+    max_measurements: int
+    fs_hz: float
+    max_samples: int
+    tx_rx_distance_mm: float
+    circumference_mm: float
+    velocity_m_s: float
+    n_tx: int
+    n_rx: int
+    tx_angles_deg: tuple[float, ...] = ()
+    rx_angles_deg: tuple[float, ...] = ()
+
+    @property
+    def firmware_version(self) -> str:
+        return f"{self.fw_major}.{self.fw_minor}.{self.fw_patch}"
+
+    def _fixed(self) -> tuple:
+        raw = self.node_id.encode("utf-8")
+        if len(raw) > NODE_ID_BYTES:
+            raise MessageError(f"node_id {self.node_id!r} is longer than {NODE_ID_BYTES} bytes")
+        if len(self.tx_angles_deg) != self.n_tx or len(self.rx_angles_deg) != self.n_rx:
+            raise MessageError("n_tx/n_rx do not match the angle lists")
+        return (raw,) + super()._fixed()[1:-2]
+
+    def _tail(self) -> bytes:
+        angles = tuple(self.tx_angles_deg) + tuple(self.rx_angles_deg)
+        return struct.pack(f"<{len(angles)}f", *angles)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> InfoReply:
+        size = cls._STRUCT.size
+        if len(payload) < size:
+            raise MessageError(f"InfoReply payload is {len(payload)} bytes, shorter than {size}")
+        fixed = cls._STRUCT.unpack_from(payload)
+        n_tx, n_rx = fixed[-2], fixed[-1]
+        _check_tail_len(cls, payload, size + 4 * (n_tx + n_rx))
+        angles = struct.unpack_from(f"<{n_tx + n_rx}f", payload, size)
+        try:
+            node_id = fixed[0].rstrip(b"\x00").decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise MessageError(f"node_id is not UTF-8: {exc}") from exc
+        return cls(node_id, *fixed[1:], tx_angles_deg=angles[:n_tx], rx_angles_deg=angles[n_tx:])
+
+
+# ---------------------------------------------------------------- STATUS
+@dataclass(frozen=True)
+class StatusRequest(Message):
+    TYPE: ClassVar[int] = MsgType.STATUS
+
+
+@dataclass(frozen=True)
+class StatusReply(Message):
+    """Health counters; ``baseline_id`` is 0 when no baseline is stored."""
+
+    TYPE: ClassVar[int] = MsgType.STATUS_REPLY
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIffIIIIBB")
+    uptime_s: int
+    boot_id: int
+    temperature_c: float
+    supply_v: float
+    crc_errors: int
+    framing_errors: int
+    rejected_requests: int
+    baseline_id: int
+    n_measurements: int
+    busy: int
+
+    @property
+    def baseline_stored(self) -> bool:
+        return self.baseline_id != 0
+
+
+# ---------------------------------------------------------------- CONFIGURE
+@dataclass(frozen=True)
+class ConfigureRequest(Message):
+    """Excitation and acquisition settings; bit i of ``channel_mask`` enables Rx channel i."""
+
+    TYPE: ClassVar[int] = MsgType.CONFIGURE
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<fBHHI")
+    excitation_hz: float
+    cycles: int
+    averaging: int
+    channel_mask: int
+    n_samples: int
+
+
+@dataclass(frozen=True)
+class ConfigureReply(ConfigureRequest):
+    """The settings now in force (the node echoes what it applied)."""
+
+    TYPE: ClassVar[int] = MsgType.CONFIGURE_REPLY
+
+
+# ---------------------------------------------------------------- ACQUIRE
+@dataclass(frozen=True)
+class AcquireRequest(Message):
+    TYPE: ClassVar[int] = MsgType.ACQUIRE
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<B")
+    as_baseline: int = 0
+
+
+@dataclass(frozen=True)
+class AcquireReply(Message):
+    TYPE: ClassVar[int] = MsgType.ACQUIRE_REPLY
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IBfHIII")
+    measurement_id: int
+    is_baseline: int
+    temperature_c: float
+    channel_mask: int
+    n_samples: int
+    uptime_s: int
+    boot_id: int
+
+
+# ---------------------------------------------------------------- READ_TRACES
+@dataclass(frozen=True)
+class ReadTracesRequest(Message):
+    """Raw int16 codes of one measurement; ``count`` 0 means "to the end"; no chunks = all."""
+
+    TYPE: ClassVar[int] = MsgType.READ_TRACES
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IHII")
+    measurement_id: int
+    channel_mask: int
+    start: int
+    count: int
+    chunks: tuple[int, ...] = ()
+
+    def _fixed(self) -> tuple:
+        return super()._fixed()[:-1]
+
+    def _tail(self) -> bytes:
+        return _pack_chunk_list(tuple(self.chunks))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> ReadTracesRequest:
+        size = cls._STRUCT.size
+        chunks = _unpack_chunk_list(cls, payload, size)
+        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
+
+
+@dataclass(frozen=True)
+class TraceMeta(Message):
+    """First frame of a READ_TRACES reply: what the chunks will hold and their CRC-32C."""
+
+    TYPE: ClassVar[int] = MsgType.TRACE_META
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBHIIffffBIHHI")
+    boot_id: int
+    measurement_id: int
+    is_baseline: int
+    channel_mask: int
+    start: int
+    count: int
+    fs_hz: float
+    t0_s: float
+    volts_per_code: float
+    temperature_c: float
+    adc_bits: int
+    total_bytes: int
+    chunk_bytes: int
+    n_chunks: int
+    transfer_crc32c: int
+
+
+# ---------------------------------------------------------------- COMPUTE_DI / READ_DI
+@dataclass(frozen=True)
+class ComputeDiRequest(Message):
+    """DI map of ``current_id`` against ``baseline_id`` (0 = the stored baseline)."""
+
+    TYPE: ClassVar[int] = MsgType.COMPUTE_DI
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIB")
+    current_id: int
+    baseline_id: int = 0
+    decimation: int = 0  # 0 = the node's default
+
+
+@dataclass(frozen=True)
+class ComputeDiReply(Message):
+    TYPE: ClassVar[int] = MsgType.COMPUTE_DI_REPLY
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIIBHHfff")
+    di_id: int
+    current_id: int
+    baseline_id: int
+    decimation: int
+    n_axial: int
+    n_angle: int
+    peak_value: float
+    peak_axial_mm: float
+    peak_angle_deg: float
+
+
+@dataclass(frozen=True)
+class ReadDiRequest(Message):
+    TYPE: ClassVar[int] = MsgType.READ_DI
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<I")
+    di_id: int
+    chunks: tuple[int, ...] = ()
+
+    def _fixed(self) -> tuple:
+        return super()._fixed()[:-1]
+
+    def _tail(self) -> bytes:
+        return _pack_chunk_list(tuple(self.chunks))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> ReadDiRequest:
+        chunks = _unpack_chunk_list(cls, payload, cls._STRUCT.size)
+        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
+
+
+@dataclass(frozen=True)
+class DiMeta(Message):
+    """First frame of a READ_DI reply: uniform grid spec; pixels float32 [n_axial, n_angle]."""
+
+    TYPE: ClassVar[int] = MsgType.DI_META
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIIIBHHffffIHHI")
+    boot_id: int
+    di_id: int
+    current_id: int
+    baseline_id: int
+    decimation: int
+    n_axial: int
+    n_angle: int
+    axial_start_mm: float
+    axial_step_mm: float
+    angle_start_deg: float
+    angle_step_deg: float
+    total_bytes: int
+    chunk_bytes: int
+    n_chunks: int
+    transfer_crc32c: int
+
+
+# ---------------------------------------------------------------- bulk data and errors
+@dataclass(frozen=True)
+class BulkChunk(Message):
+    """Chunk ``index`` of ``n_chunks`` of the bulk data announced by the preceding *_META."""
+
+    TYPE: ClassVar[int] = MsgType.BULK_CHUNK
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<HH")
+    index: int
+    n_chunks: int
+    data: bytes = b""
+
+    def _fixed(self) -> tuple:
+        return (self.index, self.n_chunks)
+
+    def _tail(self) -> bytes:
+        return bytes(self.data)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BulkChunk:
+        if len(payload) < cls._STRUCT.size:
+            raise MessageError(f"BulkChunk payload is {len(payload)} bytes, too short")
+        index, n_chunks = cls._STRUCT.unpack_from(payload)
+        if index >= n_chunks:
+            raise MessageError(f"chunk index {index} is not below n_chunks={n_chunks}")
+        return cls(index, n_chunks, bytes(payload[cls._STRUCT.size :]))
+
+
+@dataclass(frozen=True)
+class ErrorReply(Message):
+    """The request could not be carried out; ``detail`` is short ASCII for logs."""
+
+    TYPE: ClassVar[int] = MsgType.ERROR
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<HBB")
+    code: int
+    request_type: int
+    detail: str = ""
+
+    def _fixed(self) -> tuple:
+        return (self.code, self.request_type, 0)
+
+    def _tail(self) -> bytes:
+        return self.detail.encode("ascii", "replace")[:MAX_ERROR_DETAIL_BYTES]
+
+    @classmethod
+    def decode(cls, payload: bytes) -> ErrorReply:
+        size = cls._STRUCT.size
+        if not size <= len(payload) <= size + MAX_ERROR_DETAIL_BYTES:
+            raise MessageError(f"ErrorReply payload is {len(payload)} bytes")
+        code, request_type, _ = cls._STRUCT.unpack_from(payload)
+        return cls(code, request_type, payload[size:].decode("ascii", "replace"))
+
+
+MESSAGE_CLASSES: dict[int, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        InfoRequest, InfoReply, StatusRequest, StatusReply, ConfigureRequest, ConfigureReply,
+        AcquireRequest, AcquireReply, ReadTracesRequest, TraceMeta, ComputeDiRequest,
+        ComputeDiReply, ReadDiRequest, DiMeta, BulkChunk, ErrorReply,
+    )
+}
+
+
+def decode_message(msg_type: int, payload: bytes) -> Message:
+    """Decode a payload by its frame's message type; raises :class:`MessageError`."""
+    cls = MESSAGE_CLASSES.get(msg_type)
+    if cls is None:
+        raise UnknownMessageType(f"unknown message type 0x{msg_type:02X}")
+    return cls.decode(bytes(payload))
