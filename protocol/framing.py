@@ -1,4 +1,4 @@
-"""Frames on the wire: ``COBS(header | payload | CRC-32C) 0x00``, and a streaming decoder.
+"""Frames on the wire: ``0x00 COBS(header | payload | CRC-32C) 0x00``, and a streaming decoder.
 
 Framing knows bytes, headers and CRCs only; the meaning of payloads lives in ``messages.py``.
 All multi-byte fields are little-endian.
@@ -20,7 +20,7 @@ HEADER_BYTES = HEADER.size  # 10
 CRC_BYTES = 4
 MAX_FRAME_BYTES = 4096  # decoded header + payload + CRC; fits two RX/TX buffers in node BRAM
 MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES - HEADER_BYTES - CRC_BYTES
-MAX_ENCODED_BYTES = cobs_max_encoded_len(MAX_FRAME_BYTES) + 1  # + delimiter
+MAX_ENCODED_BYTES = cobs_max_encoded_len(MAX_FRAME_BYTES)  # between two delimiters
 
 FLAG_REPLY = 0x01  # sent by the node
 FLAG_CACHED = 0x02  # reply replayed from the request-id cache (the command did not run again)
@@ -72,7 +72,8 @@ def encode_frame(frame: Frame) -> bytes:
         frame.seq & 0xFFFF, frame.request_id & 0xFFFFFFFF,
     ) + bytes(frame.payload)
     body += struct.pack("<I", crc32c(body))
-    return cobs_encode(body) + b"\x00"
+    # A leading delimiter too: whatever noise preceded the frame is cut off at that 0x00.
+    return b"\x00" + cobs_encode(body) + b"\x00"
 
 
 def decode_frame_body(block: bytes) -> Frame:

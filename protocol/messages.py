@@ -313,10 +313,16 @@ class ComputeDiRequest(Message):
     """DI map of ``current_id`` against ``baseline_id`` (0 = the stored baseline)."""
 
     TYPE: ClassVar[int] = MsgType.COMPUTE_DI
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIB")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBffHffH")
     current_id: int
     baseline_id: int = 0
     decimation: int = 0  # 0 = the node's default
+    axial_start_mm: float = 0.0
+    axial_step_mm: float = 0.0
+    axial_count: int = 0  # 0 = the node's default grid (the other grid fields are ignored)
+    angle_start_deg: float = 0.0
+    angle_step_deg: float = 0.0
+    angle_count: int = 0
 
 
 @dataclass(frozen=True)
