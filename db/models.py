@@ -1,0 +1,286 @@
+"""ORM models (SQLAlchemy 2.0 typed declarative). The schema itself is made by Alembic.
+
+Rows are named ``...Row`` so they are never mistaken for the in-memory records of
+``imaging``/``protocol``. Every timestamp is a timezone-aware UTC instant.
+"""
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from sqlalchemy import (
+    Boolean,
+    CheckConstraint,
+    Enum,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    UniqueConstraint,
+    Uuid,
+    false,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+from db.column_types import BigId, UTCDateTime, json_type
+
+# Deterministic constraint names, so migrations can refer to them on every backend.
+NAMING_CONVENTION = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class NodeState(StrEnum):
+    OK = "ok"
+    SUSPECTED = "suspected"
+    DAMAGE = "damage"
+    NO_VALID_BASELINE = "no_valid_baseline"
+
+
+class MeasurementKind(StrEnum):
+    BASELINE = "baseline"
+    MONITOR = "monitor"
+
+
+class MapSource(StrEnum):
+    NODE = "node"  # computed on the FPGA node and sent with the traces
+    GATEWAY = "gateway"  # recomputed by the gateway from the raw traces
+
+
+class Severity(StrEnum):
+    INFO = "info"
+    WARNING = "warning"
+    CRITICAL = "critical"
+
+
+class DeliveryStatus(StrEnum):
+    PENDING = "pending"
+    DELIVERED = "delivered"
+    DEAD = "dead"
+
+
+class Role(StrEnum):
+    VIEWER = "viewer"
+    OPERATOR = "operator"
+    ADMIN = "admin"
+
+
+def _enum(enum_cls: type[StrEnum], name: str) -> Enum:
+    """A portable enum column: VARCHAR plus a named CHECK constraint, no native PG type."""
+    return Enum(
+        enum_cls,
+        name=name,
+        native_enum=False,
+        create_constraint=True,
+        length=32,
+        values_callable=lambda members: [member.value for member in members],
+        validate_strings=True,
+    )
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: json_type()}
+
+
+class NodeRow(Base):
+    """One FPGA node as last reported by its INFO message, plus the gateway's view of it."""
+
+    __tablename__ = "nodes"
+
+    node_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    port_url: Mapped[str] = mapped_column(String(255))
+    firmware: Mapped[str] = mapped_column(String(64))
+    protocol_version: Mapped[int] = mapped_column(Integer)
+    n_channels: Mapped[int] = mapped_column(Integer)
+    fs_hz: Mapped[float] = mapped_column(Float)
+    # ring angles, tx_rx_distance_mm, circumference_mm, pipe_length_mm, tx_axial_mm
+    geometry: Mapped[dict[str, Any]]
+    first_seen_at: Mapped[datetime]
+    last_seen_at: Mapped[datetime]
+    online: Mapped[bool] = mapped_column(Boolean, server_default=false())
+    error_counters: Mapped[dict[str, Any]]
+    state: Mapped[NodeState] = mapped_column(_enum(NodeState, "node_state"))
+    latest_di_peak: Mapped[float | None] = mapped_column(Float)
+    latest_threshold: Mapped[float | None] = mapped_column(Float)
+
+
+class MeasurementRow(Base):
+    """One acquisition: metadata always; raw ADC codes until retention prunes them."""
+
+    __tablename__ = "measurements"
+    __table_args__ = (
+        Index("ix_measurements_node_time", "node_id", "acquired_at", "id"),
+        # A blob is either present (not pruned) or gone with the time it was pruned.
+        CheckConstraint(
+            "(traces_blob IS NULL) = (traces_pruned_at IS NOT NULL)", name="traces_xor_pruned"
+        ),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))
+    kind: Mapped[MeasurementKind] = mapped_column(_enum(MeasurementKind, "measurement_kind"))
+    acquired_at: Mapped[datetime]
+    node_measurement_id: Mapped[int] = mapped_column(Integer)
+    temperature_c: Mapped[float | None] = mapped_column(Float)
+    averaging: Mapped[int] = mapped_column(Integer)
+    fs_hz: Mapped[float] = mapped_column(Float)
+    t0_s: Mapped[float] = mapped_column(Float)
+    n_channels: Mapped[int] = mapped_column(Integer)
+    n_samples: Mapped[int] = mapped_column(Integer)
+    volts_per_code: Mapped[float] = mapped_column(Float)
+    excitation_hz: Mapped[float] = mapped_column(Float)
+    cycles: Mapped[int] = mapped_column(Integer)
+    # Deferred: listing measurements must not drag ~100 kB per row out of the database.
+    traces_blob: Mapped[bytes | None] = mapped_column(LargeBinary, deferred=True)
+    traces_codec: Mapped[str] = mapped_column(String(32))
+    traces_dtype: Mapped[str] = mapped_column(String(8))
+    traces_sha256: Mapped[str] = mapped_column(String(64))
+    traces_nbytes: Mapped[int] = mapped_column(Integer)
+    traces_pruned_at: Mapped[datetime | None]
+    stored_at: Mapped[datetime]
+
+    node: Mapped[NodeRow] = relationship()
+    di_maps: Mapped[list[DiMapRow]] = relationship(
+        back_populates="measurement",
+        foreign_keys="DiMapRow.measurement_id",
+        order_by="DiMapRow.id",
+    )
+
+
+class DiMapRow(Base):
+    """A damage-index image of one monitor measurement against a baseline."""
+
+    __tablename__ = "di_maps"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), index=True)
+    source: Mapped[MapSource] = mapped_column(_enum(MapSource, "map_source"))
+    method: Mapped[str] = mapped_column(String(64))
+    # axial_start_mm/axial_step_mm/axial_count, angle_start_deg/angle_step_deg/angle_count
+    grid: Mapped[dict[str, Any]]
+    baseline_measurement_id: Mapped[int | None] = mapped_column(BigId, ForeignKey("measurements.id"))
+    pixels_blob: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)
+    pixels_codec: Mapped[str] = mapped_column(String(32))
+    pixels_dtype: Mapped[str] = mapped_column(String(8))
+    pixels_sha256: Mapped[str] = mapped_column(String(64))
+    peak_di: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime]
+
+    measurement: Mapped[MeasurementRow] = relationship(
+        back_populates="di_maps", foreign_keys=[measurement_id]
+    )
+
+
+class BaselineRow(Base):
+    """Which measurement a node's DI maps are computed against; the history is kept."""
+
+    __tablename__ = "baselines"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"), index=True)
+    measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), index=True)
+    created_by: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime]
+    reason: Mapped[str] = mapped_column(Text)
+    active: Mapped[bool] = mapped_column(Boolean)
+    deactivated_at: Mapped[datetime | None]
+
+
+# At most one active baseline per node, enforced by the database as well as by
+# set_active_baseline(); both SQLite (>= 3.8) and PostgreSQL support partial indexes.
+Index(
+    "uq_baselines_one_active_per_node",
+    BaselineRow.node_id,
+    unique=True,
+    sqlite_where=BaselineRow.active,
+    postgresql_where=BaselineRow.active,
+)
+
+
+class DetectionRow(Base):
+    """The verdict on one monitor measurement: DI peak against threshold, and where."""
+
+    __tablename__ = "detections"
+    __table_args__ = (Index("ix_detections_node_time", "node_id", "created_at", "id"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), unique=True)
+    node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))
+    peak_di: Mapped[float] = mapped_column(Float)
+    threshold: Mapped[float] = mapped_column(Float)
+    axial_mm: Mapped[float | None] = mapped_column(Float)
+    angle_deg: Mapped[float | None] = mapped_column(Float)
+    state: Mapped[NodeState] = mapped_column(_enum(NodeState, "detection_state"))
+    confidence: Mapped[float | None] = mapped_column(Float)
+    created_at: Mapped[datetime]
+
+
+class StateChangeRow(Base):
+    """A transition of a node's state, with the measurement that caused it (if any)."""
+
+    __tablename__ = "state_changes"
+    __table_args__ = (Index("ix_state_changes_node_time", "node_id", "at", "id"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))
+    measurement_id: Mapped[int | None] = mapped_column(BigId, ForeignKey("measurements.id"))
+    from_state: Mapped[NodeState] = mapped_column(_enum(NodeState, "from_state"))
+    to_state: Mapped[NodeState] = mapped_column(_enum(NodeState, "to_state"))
+    at: Mapped[datetime]
+
+
+class EventRow(Base):
+    """The alert outbox: written in the same transaction as the fact it reports."""
+
+    __tablename__ = "events"
+    __table_args__ = (Index("ix_events_created_at", "created_at"),)
+
+    id: Mapped[uuid.UUID] = mapped_column(Uuid, primary_key=True)
+    node_id: Mapped[str | None] = mapped_column(ForeignKey("nodes.node_id"), index=True)
+    kind: Mapped[str] = mapped_column(String(64))
+    severity: Mapped[Severity] = mapped_column(_enum(Severity, "severity"))
+    payload: Mapped[dict[str, Any]]
+    created_at: Mapped[datetime]
+
+
+class DeliveryRow(Base):
+    """One event's delivery state towards one sink (webhook, MQTT, ...)."""
+
+    __tablename__ = "deliveries"
+    __table_args__ = (
+        UniqueConstraint("event_id", "sink"),
+        Index("ix_deliveries_due", "status", "next_attempt_at"),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    event_id: Mapped[uuid.UUID] = mapped_column(ForeignKey("events.id"))
+    sink: Mapped[str] = mapped_column(String(64))
+    status: Mapped[DeliveryStatus] = mapped_column(_enum(DeliveryStatus, "delivery_status"))
+    attempts: Mapped[int] = mapped_column(Integer)
+    next_attempt_at: Mapped[datetime | None]
+    last_error: Mapped[str | None] = mapped_column(Text)
+
+
+class ApiKeyRow(Base):
+    """An API key: only the SHA-256 of the token and a short display prefix are stored."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    name: Mapped[str] = mapped_column(String(128))
+    role: Mapped[Role] = mapped_column(_enum(Role, "role"))
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    key_prefix: Mapped[str] = mapped_column(String(16))
+    created_at: Mapped[datetime]
+    revoked_at: Mapped[datetime | None]
