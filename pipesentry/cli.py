@@ -1,12 +1,10 @@
-"""The ``pipesentry`` command: one subcommand per job."""
+"""The ``pipesentry`` command: one subcommand per job, each implemented in pipesentry/commands/."""
 from __future__ import annotations
 
-import json
-import sys
-from pathlib import Path
-from typing import Annotated, Optional
-
 import typer
+
+from pipesentry.commands.analyze import analyze
+from pipesentry.commands.demo import demo
 
 app = typer.Typer(
     help="PipeSentry: permanent guided-wave pipe monitoring.",
@@ -15,55 +13,18 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-EXIT_BAD_INPUT = 2
+
+@app.callback()
+def _root() -> None:
+    """PipeSentry: permanent guided-wave pipe monitoring (mock nodes, gateway, API, analysis)."""
 
 
-def fail(message: str) -> None:
-    """A user's bad input: one line on stderr and exit code 2, never a traceback."""
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(EXIT_BAD_INPUT)
+app.command()(analyze)
+app.command()(demo)
 
-
-def format_summary(result) -> str:
-    lines = [f"peak DI {result.peak_di:.6g} ({result.di_map.method}, {result.elapsed_ms:.1f} ms)"]
-    for k, d in enumerate(result.defects, 1):
-        lines.append(f"defect {k}: axial {d.axial_mm:.1f} mm from the Tx ring, angle {d.angle_deg:.1f} deg, DI {d.di:.6g}")
-    return "\n".join(lines)
-
-
-@app.command()
-def analyze(
-    baseline: Annotated[Path, typer.Option(help="baseline (defect-free) measurement, .npz or .csv")],
-    current: Annotated[Path, typer.Option(help="current measurement, .npz or .csv")],
-    as_json: Annotated[bool, typer.Option("--json", help="print exactly one JSON object")] = False,
-    png: Annotated[Optional[Path], typer.Option(help="write the DI-map heatmap to this PNG file")] = None,
-) -> None:
-    """Image CURRENT against BASELINE and estimate the defect position."""
-    from imaging.analysis import analyze as run_analysis
-    from imaging.dimap import BaselineMismatch
-    from imaging.formats import load_measurement
-    from imaging.measurement import MeasurementError
-
-    try:
-        base = load_measurement(baseline)
-        cur = load_measurement(current)
-        result = run_analysis(base, cur)
-    except (MeasurementError, BaselineMismatch) as exc:
-        fail(str(exc))
-    if png is not None:
-        from imaging.heatmap import heatmap_png
-
-        try:
-            png.write_bytes(heatmap_png(result.di_map, result.defects))
-        except OSError as exc:
-            fail(f"cannot write {png}: {exc.strerror or exc}")
-    if as_json:
-        sys.stdout.write(json.dumps(result.as_json()) + "\n")
-    else:
-        typer.echo(format_summary(result))
-        if png is not None:
-            typer.echo(f"heatmap: {png.resolve()}")
-
-
-def main() -> None:  # pragma: no cover - console entry
-    app()
+try:  # the mock node registers itself once its package is in place
+    from mocknode.cli import mock_node
+except ImportError:  # pragma: no cover - only while the mock node is being built
+    pass
+else:
+    app.command("mock-node")(mock_node)

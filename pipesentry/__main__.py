@@ -1,0 +1,3 @@
+from pipesentry.cli import app
+
+app(prog_name="pipesentry")
