@@ -1,0 +1,79 @@
+"""Active baseline per node: exactly one at a time, every change kept as history."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import datetime
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from db.clock import utc_now
+from db.errors import BaselineError
+from db.measurements import get_measurement
+from db.models import BaselineRow, MeasurementRow
+from db.nodes import get_node
+
+
+def active_baseline(session: Session, node_id: str) -> BaselineRow | None:
+    """The node's active baseline record (its ``measurement_id`` names the measurement)."""
+    return session.scalars(
+        select(BaselineRow).where(BaselineRow.node_id == node_id, BaselineRow.active.is_(True))
+    ).first()
+
+
+def active_baseline_measurement(session: Session, node_id: str) -> MeasurementRow | None:
+    """The measurement the node's DI maps are currently computed against."""
+    baseline = active_baseline(session, node_id)
+    return None if baseline is None else get_measurement(session, baseline.measurement_id)
+
+
+def set_active_baseline(
+    session: Session,
+    node_id: str,
+    measurement_id: int,
+    *,
+    created_by: str,
+    reason: str,
+    now: datetime | None = None,
+) -> BaselineRow:
+    """Make ``measurement_id`` the node's baseline; the previous one stays as history.
+
+    Raises :class:`BaselineError` if the measurement belongs to another node or its traces
+    were pruned (a baseline must be re-imageable). The partial unique index
+    ``uq_baselines_one_active_per_node`` backs this up inside the database.
+    """
+    get_node(session, node_id)
+    measurement = get_measurement(session, measurement_id)
+    if measurement.node_id != node_id:
+        raise BaselineError(f"measurement {measurement_id} belongs to node {measurement.node_id!r}, not {node_id!r}")
+    if measurement.traces_pruned_at is not None:
+        raise BaselineError(f"measurement {measurement_id} has no traces any more (pruned); it cannot be a baseline")
+    now = now or utc_now()
+    # Deactivate first, as its own statement, so the unique index never sees two active rows.
+    session.execute(
+        update(BaselineRow)
+        .where(BaselineRow.node_id == node_id, BaselineRow.active.is_(True))
+        .values(active=False, deactivated_at=now)
+        .execution_options(synchronize_session="fetch")
+    )
+    baseline = BaselineRow(
+        node_id=node_id,
+        measurement_id=measurement_id,
+        created_by=created_by,
+        created_at=now,
+        reason=reason,
+        active=True,
+        deactivated_at=None,
+    )
+    session.add(baseline)
+    session.flush()
+    return baseline
+
+
+def baseline_history(session: Session, node_id: str) -> Sequence[BaselineRow]:
+    """Every baseline the node has had, newest first."""
+    return session.scalars(
+        select(BaselineRow)
+        .where(BaselineRow.node_id == node_id)
+        .order_by(BaselineRow.created_at.desc(), BaselineRow.id.desc())
+    ).all()

@@ -1,0 +1,86 @@
+"""Keyset (cursor) pagination over rows ordered by (timestamp, id).
+
+A cursor names the last row of a page; the next page starts strictly after it, so rows
+inserted meanwhile never shift or repeat pages (unlike OFFSET), and every page is one
+index range scan.
+"""
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any, Generic, TypeVar
+
+from sqlalchemy import Select, and_, or_
+from sqlalchemy.orm import InstrumentedAttribute, Session
+
+from db.errors import InvalidCursor
+
+T = TypeVar("T")
+MAX_PAGE_SIZE = 1000
+_CURSOR_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Page(Generic[T]):
+    """One page of rows; ``next_cursor`` is None on the last page."""
+
+    items: list[T]
+    next_cursor: str | None
+
+
+def encode_cursor(at: datetime, row_id: int) -> str:
+    payload = json.dumps({"v": _CURSOR_VERSION, "t": at.isoformat(), "id": row_id}, separators=(",", ":"))
+    return base64.urlsafe_b64encode(payload.encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str) -> tuple[datetime, int]:
+    """(timestamp, id) of a cursor from :func:`encode_cursor`; raises :class:`InvalidCursor`."""
+    try:
+        padded = cursor + "=" * (-len(cursor) % 4)
+        payload = json.loads(base64.urlsafe_b64decode(padded.encode("ascii")))
+        if payload["v"] != _CURSOR_VERSION:
+            raise InvalidCursor(f"cursor version {payload['v']!r} is not supported")
+        at = datetime.fromisoformat(payload["t"])
+        row_id = payload["id"]
+    except InvalidCursor:
+        raise
+    except (ValueError, KeyError, TypeError, UnicodeError, binascii.Error) as error:
+        raise InvalidCursor(f"malformed cursor: {error}") from error
+    if at.tzinfo is None or not isinstance(row_id, int) or isinstance(row_id, bool):
+        raise InvalidCursor("malformed cursor: bad timestamp or id")
+    return at, row_id
+
+
+def keyset_page(
+    session: Session,
+    statement: Select[Any],
+    *,
+    time_column: InstrumentedAttribute[datetime],
+    id_column: InstrumentedAttribute[int],
+    limit: int,
+    cursor: str | None,
+    newest_first: bool,
+) -> Page[Any]:
+    """Run ``statement`` (a select of one entity) one page at a time."""
+    if not 1 <= limit <= MAX_PAGE_SIZE:
+        raise ValueError(f"page size must be 1..{MAX_PAGE_SIZE}, got {limit}")
+    if cursor is not None:
+        at, row_id = decode_cursor(cursor)
+        if newest_first:
+            after = or_(time_column < at, and_(time_column == at, id_column < row_id))
+        else:
+            after = or_(time_column > at, and_(time_column == at, id_column > row_id))
+        statement = statement.where(after)
+    if newest_first:
+        statement = statement.order_by(time_column.desc(), id_column.desc())
+    else:
+        statement = statement.order_by(time_column.asc(), id_column.asc())
+    rows = list(session.scalars(statement.limit(limit + 1)))
+    if len(rows) <= limit:
+        return Page(items=rows, next_cursor=None)
+    items = rows[:limit]
+    last = items[-1]
+    return Page(items=items, next_cursor=encode_cursor(getattr(last, time_column.key), getattr(last, id_column.key)))

@@ -1,0 +1,113 @@
+"""What the gateway hands to storage: validated inputs of the repository functions."""
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+
+from db.models import MapSource, NodeState, Severity
+
+
+class NodeGeometry(BaseModel):
+    """Ring layout of a node (stored as JSON in ``nodes.geometry``). Angles in degrees."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    rx_angles_deg: list[float] = Field(min_length=1)
+    tx_angles_deg: list[float] = Field(min_length=1)
+    tx_rx_distance_mm: PositiveFloat
+    circumference_mm: PositiveFloat
+    pipe_length_mm: PositiveFloat | None = None
+    tx_axial_mm: float | None = Field(None, ge=0)
+
+
+class MapGrid(BaseModel):
+    """Pixel grid of a DI map (stored as JSON in ``di_maps.grid``); pixels are [axial, angle]."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    axial_start_mm: float
+    axial_step_mm: PositiveFloat
+    axial_count: PositiveInt
+    angle_start_deg: float
+    angle_step_deg: PositiveFloat
+    angle_count: PositiveInt
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.axial_count, self.angle_count)
+
+
+@dataclass(frozen=True)
+class NodeInfo:
+    """A node's identity and configuration, from its INFO reply."""
+
+    node_id: str
+    port_url: str
+    firmware: str
+    protocol_version: int
+    n_channels: int
+    fs_hz: float
+    geometry: NodeGeometry
+
+
+@dataclass(frozen=True)
+class DiMapInput:
+    """A DI map to store with its measurement; ``pixels`` is float32 [axial_count, angle_count]."""
+
+    source: MapSource
+    method: str
+    grid: MapGrid
+    pixels: np.ndarray
+    baseline_measurement_id: int | None
+
+    def __post_init__(self) -> None:
+        pixels = np.asarray(self.pixels)
+        if pixels.dtype != np.float32:
+            raise ValueError(f"DI map pixels must be float32, got {pixels.dtype}")
+        if pixels.shape != self.grid.shape:
+            raise ValueError(f"DI map pixels have shape {pixels.shape}, the grid says {self.grid.shape}")
+        if not np.any(np.isfinite(pixels)):
+            raise ValueError("DI map has no finite pixel")
+
+    @property
+    def peak_di(self) -> float:
+        return float(np.nanmax(np.where(np.isfinite(self.pixels), self.pixels, np.nan)))
+
+
+@dataclass(frozen=True)
+class DetectionInput:
+    """The verdict on a monitor measurement; the location is None when nothing stands out."""
+
+    peak_di: float
+    threshold: float
+    state: NodeState
+    axial_mm: float | None = None
+    angle_deg: float | None = None
+    confidence: float | None = None
+
+
+@dataclass(frozen=True)
+class StateChangeInput:
+    """A node state transition caused by the measurement it is stored with."""
+
+    from_state: NodeState
+    to_state: NodeState
+
+    def __post_init__(self) -> None:
+        if self.from_state == self.to_state:
+            raise ValueError(f"a state change must change the state (both are {self.from_state.value})")
+
+
+@dataclass(frozen=True)
+class EventInput:
+    """An alert for the outbox; one pending delivery is created per named sink."""
+
+    kind: str
+    severity: Severity
+    payload: dict[str, Any]
+    sinks: tuple[str, ...] = ()
+    id: uuid.UUID = field(default_factory=uuid.uuid4)

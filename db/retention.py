@@ -1,0 +1,92 @@
+"""Retention: drop old raw traces in bounded batches, keep everything derived from them.
+
+Measurement rows, DI maps, detections and state changes stay forever; only
+``measurements.traces_blob`` is cleared (with ``traces_pruned_at`` set). A measurement that
+is, was, or was recorded as a baseline is never pruned: every stored DI map must remain
+reproducible from its baseline's traces.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from datetime import datetime, timedelta
+
+from sqlalchemy import select, text, update
+from sqlalchemy.orm import Session
+
+from db.clock import utc_now
+from db.models import BaselineRow, MeasurementKind, MeasurementRow
+
+SessionFactory = Callable[[], AbstractContextManager[Session]]
+DEFAULT_MAX_BATCHES = 10_000
+VACUUM_PAGES_PER_STEP = 256  # 4 MiB at 16 KiB pages: a short write lock per step
+MAX_VACUUM_STEPS = 10_000
+
+
+def prune_traces(
+    session_factory: SessionFactory,
+    older_than: timedelta,
+    batch_size: int,
+    *,
+    now: datetime | None = None,
+    max_batches: int = DEFAULT_MAX_BATCHES,
+) -> int:
+    """Clear raw traces acquired before ``now - older_than``; returns how many were pruned.
+
+    ``session_factory`` is ``Database.write``: each batch of at most ``batch_size`` rows is
+    its own short transaction, so the gateway's writes interleave with a long prune. On
+    SQLite the freed pages are then returned to the file system with
+    ``PRAGMA incremental_vacuum`` in bounded steps.
+    """
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if older_than < timedelta(0):
+        raise ValueError(f"older_than must not be negative, got {older_than}")
+    now = now or utc_now()
+    cutoff = now - older_than
+    ever_baseline = select(BaselineRow.measurement_id)
+    pruned = 0
+    is_sqlite = False
+    for _ in range(max_batches):
+        with session_factory() as session:
+            is_sqlite = session.get_bind().dialect.name == "sqlite"
+            ids = session.scalars(
+                select(MeasurementRow.id)
+                .where(
+                    MeasurementRow.acquired_at < cutoff,
+                    MeasurementRow.traces_pruned_at.is_(None),
+                    MeasurementRow.kind != MeasurementKind.BASELINE,
+                    MeasurementRow.id.not_in(ever_baseline),
+                )
+                .order_by(MeasurementRow.acquired_at, MeasurementRow.id)
+                .limit(batch_size)
+            ).all()
+            if ids:
+                session.execute(
+                    update(MeasurementRow)
+                    .where(MeasurementRow.id.in_(ids))
+                    .values(traces_blob=None, traces_pruned_at=now)
+                    .execution_options(synchronize_session=False)
+                )
+        pruned += len(ids)
+        if len(ids) < batch_size:
+            break
+    if is_sqlite and pruned:
+        reclaim_free_pages(session_factory)
+    return pruned
+
+
+def reclaim_free_pages(session_factory: SessionFactory, *, pages_per_step: int = VACUUM_PAGES_PER_STEP) -> int:
+    """SQLite: give free pages back to the file system, a bounded number per transaction.
+
+    Returns the number of pages still free afterwards (0 unless ``MAX_VACUUM_STEPS`` ran out).
+    """
+    remaining = 0
+    for _ in range(MAX_VACUUM_STEPS):
+        with session_factory() as session:
+            # The pragma frees one page per result row stepped, so all rows must be fetched.
+            session.execute(text(f"PRAGMA incremental_vacuum({int(pages_per_step)})")).all()
+            remaining = int(session.execute(text("PRAGMA freelist_count")).scalar_one())
+        if remaining == 0:
+            break
+    return remaining
