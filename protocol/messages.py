@@ -12,7 +12,7 @@ import struct
 from dataclasses import dataclass
 from typing import ClassVar
 
-NODE_ID_BYTES = 16
+NODE_ID_BYTES = 32
 MAX_ERROR_DETAIL_BYTES = 64
 MAX_CHUNK_LIST = 512  # chunk indices one READ_* request may name
 
@@ -222,7 +222,7 @@ class ConfigureRequest(Message):
     """Excitation and acquisition settings; bit i of ``channel_mask`` enables Rx channel i."""
 
     TYPE: ClassVar[int] = MsgType.CONFIGURE
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<fBHHI")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<fBHII")
     excitation_hz: float
     cycles: int
     averaging: int
@@ -248,7 +248,7 @@ class AcquireRequest(Message):
 @dataclass(frozen=True)
 class AcquireReply(Message):
     TYPE: ClassVar[int] = MsgType.ACQUIRE_REPLY
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IBfHIII")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IBfIIII")
     measurement_id: int
     is_baseline: int
     temperature_c: float
@@ -264,7 +264,7 @@ class ReadTracesRequest(Message):
     """Raw int16 codes of one measurement; ``count`` 0 means "to the end"; no chunks = all."""
 
     TYPE: ClassVar[int] = MsgType.READ_TRACES
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IHII")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIII")
     measurement_id: int
     channel_mask: int
     start: int
@@ -289,7 +289,7 @@ class TraceMeta(Message):
     """First frame of a READ_TRACES reply: what the chunks will hold and their CRC-32C."""
 
     TYPE: ClassVar[int] = MsgType.TRACE_META
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBHIIffffBIHHI")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBIIIffffBIHHI")
     boot_id: int
     measurement_id: int
     is_baseline: int

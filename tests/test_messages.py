@@ -113,8 +113,8 @@ def test_a_field_too_large_for_its_wire_type_raises_message_error():
         ReadDiRequest(1, tuple(range(MAX_CHUNK_LIST + 1))).encode()
 
 
-def test_info_reply_rejects_a_node_id_longer_than_sixteen_bytes():
-    reply = InfoReply("x" * 17, 1, 0, 0, 1, 0, 0, 4096, 2048, 1, 10, 10, 4, 1e6, 6000,
+def test_info_reply_rejects_a_node_id_longer_than_thirty_two_bytes():
+    reply = InfoReply("x" * 33, 1, 0, 0, 1, 0, 0, 4096, 2048, 1, 10, 10, 4, 1e6, 6000,
                       400.0, 500.0, 3130.0, 0, 1, (), (0.0,))
     with pytest.raises(MessageError):
         reply.encode()

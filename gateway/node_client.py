@@ -1,0 +1,377 @@
+"""Gateway side of the node protocol: commands with timeouts, bounded retries and verified transfers.
+
+A retried command reuses its request id, so the node answers a repeat from its reply cache
+instead of running it twice (no double acquisition). Bulk replies are reassembled from chunks;
+only lost chunks are asked for again; the whole transfer is checked against its CRC-32C.
+"""
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.transport import NodeClientError, PortVanished, SerialTransport
+from imaging.grid import Grid
+from protocol.bulk import BulkAssembler, BulkError, TransferCrcError
+from protocol.framing import FLAG_LAST, PROTOCOL_VERSION, Frame, FrameDecoder, FrameError, encode_frame
+from protocol.messages import (
+    MAX_CHUNK_LIST,
+    AcquireReply,
+    AcquireRequest,
+    BulkChunk,
+    ComputeDiReply,
+    ComputeDiRequest,
+    ConfigureReply,
+    ConfigureRequest,
+    DiMeta,
+    ErrorCode,
+    ErrorReply,
+    InfoReply,
+    InfoRequest,
+    Message,
+    MessageError,
+    ReadDiRequest,
+    ReadTracesRequest,
+    StatusReply,
+    StatusRequest,
+    TraceMeta,
+    decode_message,
+)
+
+__all__ = [
+    "NodeClient", "NodeClientError", "NodeTimeout", "ProtocolMismatch", "PortVanished",
+    "NodeError", "NodeRebooted", "TransferError", "TraceTransfer", "DiTransfer",
+]
+
+
+class NodeTimeout(NodeClientError):
+    """The node did not answer within the timeout, after every retry."""
+
+
+class ProtocolMismatch(NodeClientError):
+    """The node speaks another protocol version, or sent a CRC-valid frame we cannot parse."""
+
+
+class NodeError(NodeClientError):
+    """The node answered with an ERROR reply; ``code`` is an :class:`ErrorCode` (or raw int)."""
+
+    def __init__(self, code: int, detail: str, request_type: int) -> None:
+        try:
+            self.code: ErrorCode | int = ErrorCode(code)
+        except ValueError:
+            self.code = code
+        self.detail = detail
+        self.request_type = request_type
+        name = self.code.name if isinstance(self.code, ErrorCode) else str(code)
+        super().__init__(f"node error {name} on request 0x{request_type:02X}: {detail}")
+
+
+class NodeRebooted(NodeClientError):
+    """The node's boot id changed during a transfer: its RAM (measurements, DI maps) is gone."""
+
+
+class TransferError(NodeClientError):
+    """A bulk transfer could not be completed and verified (CRC-32C) within the retries."""
+
+
+@dataclass(frozen=True)
+class TraceTransfer:
+    """Raw ADC codes of one measurement, verified end to end."""
+
+    measurement_id: int
+    boot_id: int
+    is_baseline: bool
+    channels: tuple[int, ...]
+    start: int
+    codes: np.ndarray  # int16 [n_channels, n_samples]
+    volts_per_code: float
+    fs_hz: float
+    t0_s: float
+    temperature_c: float
+    adc_bits: int
+    transfer_crc32c: int
+    chunks_rerequested: int
+
+    @property
+    def volts(self) -> np.ndarray:
+        return self.codes.astype(np.float64) * self.volts_per_code
+
+
+@dataclass(frozen=True)
+class DiTransfer:
+    """An on-board DI map, verified end to end."""
+
+    di_id: int
+    boot_id: int
+    current_id: int
+    baseline_id: int
+    decimation: int
+    grid: Grid
+    pixels: np.ndarray  # float32 [n_axial, n_angle]
+    transfer_crc32c: int
+    chunks_rerequested: int
+
+
+def _mask_of(channels: tuple[int, ...] | list[int] | None, n_channels: int) -> int:
+    chosen = range(n_channels) if channels is None else channels
+    mask = 0
+    for ch in chosen:
+        if not 0 <= ch < 32:
+            raise ValueError(f"channel {ch} is outside 0..31")
+        mask |= 1 << ch
+    return mask
+
+
+def _channels_of(mask: int) -> tuple[int, ...]:
+    return tuple(i for i in range(32) if mask >> i & 1)
+
+
+class NodeClient:
+    """Talks to one node over ``serial.serial_for_url(url)``: a device path, socket://, loop://."""
+
+    def __init__(
+        self,
+        url: str,
+        baudrate: int = 230400,
+        timeout_s: float = 1.0,
+        retries: int = 3,
+        backoff_s: float = 0.05,
+        backoff_max_s: float = 2.0,
+        shot_period_s: float = 0.01,
+        compute_timeout_s: float = 60.0,
+        transfer_rounds: int = 4,
+        exclusive: bool = True,
+        seed: int | None = None,
+    ) -> None:
+        self.url = url
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self.backoff_max_s = backoff_max_s
+        self.shot_period_s = shot_period_s
+        self.compute_timeout_s = compute_timeout_s
+        self.transfer_rounds = transfer_rounds
+        self._rng = random.Random(seed)
+        # A random first id: a restarted gateway must not hit the node's cache of an old session.
+        self._request_id = self._rng.randrange(1, 2**32)
+        self._seq = 0
+        self._averaging = 1
+        self._info: InfoReply | None = None
+        self.frame_errors = 0
+        self.retried = 0
+        self._decoder = FrameDecoder()
+        self._transport = SerialTransport(url, baudrate=baudrate, exclusive=exclusive)
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        self._transport.close()
+
+    def reopen(self) -> None:
+        """Open the port again after :class:`PortVanished` (e.g. a re-plugged USB-UART)."""
+        self._transport.reopen()
+        self._decoder = FrameDecoder()
+
+    def __enter__(self) -> NodeClient:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ commands
+    def info(self) -> InfoReply:
+        """HELLO/INFO: identity, capabilities and geometry; raises ProtocolMismatch if unsupported."""
+        reply = self._command(InfoRequest(PROTOCOL_VERSION, PROTOCOL_VERSION), InfoReply)
+        if reply.protocol_version != PROTOCOL_VERSION:
+            raise ProtocolMismatch(f"node speaks protocol {reply.protocol_version}, host {PROTOCOL_VERSION}")
+        self._info = reply
+        return reply
+
+    def status(self) -> StatusReply:
+        return self._command(StatusRequest(), StatusReply)
+
+    def configure(
+        self, excitation_hz: float, cycles: int, averaging: int, n_samples: int,
+        channels: tuple[int, ...] | list[int] | None = None,
+    ) -> ConfigureReply:
+        """Set excitation and acquisition; returns what the node applied."""
+        mask = _mask_of(channels, self._known_info().n_channels)
+        reply = self._command(ConfigureRequest(excitation_hz, cycles, averaging, mask, n_samples), ConfigureReply)
+        self._averaging = reply.averaging
+        return reply
+
+    def acquire(self, baseline: bool, timeout_s: float | None = None) -> AcquireReply:
+        """Fire and record (averaged); a retry returns the cached reply, never a second acquisition."""
+        wait_s = timeout_s if timeout_s is not None else self.timeout_s + self._averaging * self.shot_period_s
+        return self._command(AcquireRequest(int(baseline)), AcquireReply, timeout_s=wait_s)
+
+    def compute_di(
+        self, current_id: int, baseline_id: int = 0, decimation: int = 0, grid: Grid | None = None,
+        timeout_s: float | None = None,
+    ) -> ComputeDiReply:
+        """On-board DI map of ``current_id`` against ``baseline_id`` (0: the stored baseline)."""
+        spec = (grid.axial_start_mm, grid.axial_step_mm, grid.axial_count,
+                grid.angle_start_deg, grid.angle_step_deg, grid.angle_count) if grid else (0.0, 0.0, 0, 0.0, 0.0, 0)
+        request = ComputeDiRequest(current_id, baseline_id, decimation, *spec)
+        return self._command(request, ComputeDiReply, timeout_s=timeout_s or self.compute_timeout_s)
+
+    def read_traces(
+        self, measurement_id: int, channels: tuple[int, ...] | list[int] | None = None,
+        start: int = 0, count: int | None = None,
+    ) -> TraceTransfer:
+        """Raw int16 codes [n_channels, n] of one measurement, CRC-32C verified."""
+        mask = _mask_of(channels, self._known_info().n_channels)
+
+        def request(chunks: tuple[int, ...]) -> ReadTracesRequest:
+            return ReadTracesRequest(measurement_id, mask, start, count or 0, chunks)
+
+        meta, data, rerequested = self._bulk(request, TraceMeta)
+        n_ch = len(_channels_of(meta.channel_mask))
+        codes = np.frombuffer(data, dtype="<i2").astype(np.int16)
+        if n_ch == 0 or codes.size != n_ch * meta.count:
+            raise TransferError(f"{codes.size} codes do not fill {n_ch} channels x {meta.count} samples")
+        return TraceTransfer(
+            meta.measurement_id, meta.boot_id, bool(meta.is_baseline), _channels_of(meta.channel_mask),
+            meta.start, codes.reshape(n_ch, meta.count), meta.volts_per_code, meta.fs_hz, meta.t0_s,
+            meta.temperature_c, meta.adc_bits, meta.transfer_crc32c, rerequested,
+        )
+
+    def read_di(self, di_id: int) -> DiTransfer:
+        """Pixels float32 [n_axial, n_angle] of an on-board DI map, CRC-32C verified."""
+        meta, data, rerequested = self._bulk(lambda chunks: ReadDiRequest(di_id, chunks), DiMeta)
+        pixels = np.frombuffer(data, dtype="<f4").astype(np.float32)
+        if pixels.size != meta.n_axial * meta.n_angle:
+            raise TransferError(f"{pixels.size} pixels do not fill {meta.n_axial} x {meta.n_angle}")
+        grid = Grid(meta.axial_start_mm, meta.axial_step_mm, meta.n_axial,
+                    meta.angle_start_deg, meta.angle_step_deg, meta.n_angle)
+        return DiTransfer(meta.di_id, meta.boot_id, meta.current_id, meta.baseline_id, meta.decimation,
+                          grid, pixels.reshape(meta.n_axial, meta.n_angle), meta.transfer_crc32c, rerequested)
+
+    # ------------------------------------------------------------------ machinery
+    def _known_info(self) -> InfoReply:
+        return self._info if self._info is not None else self.info()
+
+    def _next_request_id(self) -> int:
+        self._request_id = self._request_id % (2**32 - 1) + 1  # never 0
+        return self._request_id
+
+    def _send(self, message: Message, request_id: int) -> None:
+        self._seq = (self._seq + 1) & 0xFFFF
+        self._transport.write(encode_frame(Frame(message.TYPE, request_id, message.encode(), seq=self._seq)))
+
+    def _backoff(self, attempt: int) -> None:
+        # Exponential with full jitter (urllib3 Retry style), capped.
+        cap = min(self.backoff_max_s, self.backoff_s * 2 ** (attempt - 1))
+        time.sleep(self._rng.uniform(0.5 * cap, cap))
+
+    def _replies(self, request_id: int, timeout_s: float):
+        """Yield (frame, message) replies to ``request_id`` until ``timeout_s`` passes without one."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            for item in self._decoder.feed(self._transport.read(min(left, 0.1))):
+                if isinstance(item, FrameError):
+                    self.frame_errors += 1
+                    continue
+                if not item.is_reply:
+                    continue  # our own request echoed (loop://) or another host's
+                if item.version != PROTOCOL_VERSION:
+                    raise ProtocolMismatch(f"node frame has protocol version {item.version}, host {PROTOCOL_VERSION}")
+                if item.request_id != request_id:
+                    continue  # a late reply to an earlier attempt
+                try:
+                    message = decode_message(item.msg_type, item.payload)
+                except MessageError as exc:
+                    raise ProtocolMismatch(f"CRC-valid reply we cannot parse: {exc}") from exc
+                if isinstance(message, ErrorReply) and message.code == ErrorCode.BAD_VERSION:
+                    raise ProtocolMismatch(f"node refused our protocol version: {message.detail}")
+                yield item, message
+                deadline = time.monotonic() + timeout_s
+
+    def _command(self, request: Message, reply_type: type, timeout_s: float | None = None):
+        """Send ``request``; retry with the SAME request id until a reply or the retries run out."""
+        request_id = self._next_request_id()
+        wait_s = timeout_s if timeout_s is not None else self.timeout_s
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.retried += 1
+                self._backoff(attempt)
+            self._send(request, request_id)
+            for _frame, message in self._replies(request_id, wait_s):
+                if isinstance(message, ErrorReply):
+                    if message.code == ErrorCode.BUSY:
+                        break  # ask again after the backoff
+                    raise NodeError(message.code, message.detail, message.request_type)
+                if isinstance(message, reply_type):
+                    return message
+                raise ProtocolMismatch(f"expected {reply_type.__name__}, got {type(message).__name__}")
+        raise NodeTimeout(
+            f"{type(request).__name__} to {self.url}: no reply in {self.retries + 1} attempts of {wait_s:.2f} s"
+        )
+
+    def _collect(self, request: Message, meta_type: type, pending: dict[int, BulkChunk]):
+        """One request of a bulk read; returns its *_META (or None on timeout), chunks into ``pending``."""
+        request_id = self._next_request_id()
+        meta = None
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.retried += 1
+                self._backoff(attempt)
+            self._send(request, request_id)
+            for frame, message in self._replies(request_id, self.timeout_s):
+                if isinstance(message, ErrorReply):
+                    raise NodeError(message.code, message.detail, message.request_type)
+                if isinstance(message, meta_type):
+                    meta = message
+                elif isinstance(message, BulkChunk):
+                    pending[message.index] = message
+                else:
+                    raise ProtocolMismatch(f"unexpected {type(message).__name__} in a bulk reply")
+                if frame.flags & FLAG_LAST:
+                    break
+            if meta is not None:
+                return meta
+        raise NodeTimeout(f"{type(request).__name__} to {self.url}: no reply in {self.retries + 1} attempts")
+
+    def _bulk(self, make_request, meta_type: type):
+        """Read a chunked transfer; re-request only missing chunks; verify the whole-transfer CRC."""
+        rerequested = 0
+        first: Message | None = None
+        crc_failures = 0
+        wanted: tuple[int, ...] = ()
+        assembler: BulkAssembler | None = None
+        for _round in range(self.transfer_rounds + 1):
+            pending: dict[int, BulkChunk] = {}
+            meta = self._collect(make_request(wanted), meta_type, pending)
+            if first is None:
+                first = meta
+            elif meta.boot_id != first.boot_id:
+                raise NodeRebooted(f"node rebooted during the transfer (boot id {first.boot_id} -> {meta.boot_id})")
+            elif meta != first:
+                raise TransferError(f"the node announced a different transfer: {meta} != {first}")
+            if assembler is None:
+                try:
+                    assembler = BulkAssembler(meta.total_bytes, meta.chunk_bytes, meta.n_chunks, meta.transfer_crc32c)
+                except BulkError as exc:
+                    raise ProtocolMismatch(str(exc)) from exc
+            for chunk in pending.values():
+                try:
+                    assembler.add(chunk)
+                except BulkError:
+                    self.frame_errors += 1  # a CRC-valid chunk that does not fit: drop and ask again
+            missing = assembler.missing()
+            if not missing:
+                try:
+                    return meta, assembler.result(), rerequested
+                except TransferCrcError as exc:
+                    crc_failures += 1
+                    if crc_failures > 1:
+                        raise TransferError(f"{exc} (after re-reading the whole transfer)") from exc
+                    assembler, wanted = None, ()
+                    continue
+            wanted = tuple(missing[:MAX_CHUNK_LIST])
+            rerequested += len(wanted)
+        raise TransferError(f"{type(first).__name__}: chunks still missing after {self.transfer_rounds} rounds")

@@ -1,0 +1,98 @@
+"""Byte transport to one node: a pyserial port opened from a URL (device path, socket://, loop://).
+
+Knows ports only: bytes in, bytes out, and the difference between "nothing arrived" and
+"the port is gone". Every fault of the port itself becomes :class:`PortVanished`.
+"""
+from __future__ import annotations
+
+import time
+
+import serial
+
+_POLL_S = 0.02
+
+
+class NodeClientError(Exception):
+    """Base of every error the gateway's node client raises."""
+
+
+class PortVanished(NodeClientError):
+    """The serial device or socket disappeared (unplugged, closed); ``reopen()`` is the caller's call."""
+
+
+class SerialTransport:
+    """One open pyserial port; ``read`` waits at most ``timeout_s`` for the first byte."""
+
+    def __init__(self, url: str, baudrate: int = 230400, exclusive: bool = True) -> None:
+        self.url = url
+        self.baudrate = baudrate
+        # Locking (TIOCEXCL + flock) only exists for real device paths, not for URL handlers.
+        self.exclusive = exclusive and "://" not in url
+        self._port: serial.SerialBase | None = None
+        self.open()
+
+    def open(self) -> None:
+        # A fixed short poll: changing a posix port's timeout re-runs tcsetattr on every call.
+        kwargs = {"baudrate": self.baudrate, "timeout": _POLL_S, "write_timeout": 5.0}
+        if self.exclusive:
+            kwargs["exclusive"] = True
+        try:
+            self._port = serial.serial_for_url(self.url, **kwargs)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self._port = None
+            raise PortVanished(f"cannot open {self.url}: {exc}") from exc
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass  # closing a port that already vanished has nothing left to release
+
+    def reopen(self) -> None:
+        """Close (if still open) and open the same URL again; raises PortVanished if absent."""
+        self.close()
+        self.open()
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    def _require(self) -> serial.SerialBase:
+        if self._port is None:
+            raise PortVanished(f"{self.url} is not open")
+        return self._port
+
+    def write(self, data: bytes) -> None:
+        port = self._require()
+        try:
+            port.write(data)
+            port.flush()
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise PortVanished(f"write to {self.url} failed: {exc}") from exc
+
+    def read(self, timeout_s: float) -> bytes:
+        """Bytes that arrive within ``timeout_s`` (b"" if none): at least one, then all waiting."""
+        port = self._require()
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        try:
+            while True:
+                first = port.read(1)
+                if first:
+                    waiting = port.in_waiting
+                    return first + (port.read(waiting) if waiting else b"")
+                if time.monotonic() >= deadline:
+                    return b""
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise PortVanished(f"read from {self.url} failed: {exc}") from exc
+
+    def discard_input(self) -> None:
+        port = self._require()
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise PortVanished(f"{self.url}: {exc}") from exc

@@ -1,0 +1,356 @@
+"""The node's protocol state machine, pure: request frame in, reply frames out.
+
+Implements docs/protocol.md exactly as the firmware should: reply cache by request id,
+a few measurements in bounded RAM plus a baseline slot, chunked bulk replies, and the
+on-board DI map computed on decimated data. Timing and faults belong to ``server.py``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from imaging.dimap import BaselineMismatch, compute_di_map
+from imaging.grid import Grid, GridError
+from imaging.measurement import Measurement
+from mocknode import physics
+from mocknode.scenario import NodeScenario
+from protocol.bulk import n_chunks_for, split_chunks
+from protocol.crc import crc32c
+from protocol.framing import FLAG_CACHED, FLAG_LAST, FLAG_REPLY, MAX_FRAME_BYTES, PROTOCOL_VERSION, Frame
+from protocol.messages import (
+    CAP_BASELINE_SLOT,
+    CAP_CHUNK_RETRANSMIT,
+    CAP_ON_BOARD_DI,
+    AcquireReply,
+    AcquireRequest,
+    BulkChunk,
+    ComputeDiReply,
+    ComputeDiRequest,
+    ConfigureReply,
+    ConfigureRequest,
+    DiMeta,
+    ErrorCode,
+    ErrorReply,
+    InfoReply,
+    InfoRequest,
+    Message,
+    MessageError,
+    ReadDiRequest,
+    ReadTracesRequest,
+    StatusReply,
+    StatusRequest,
+    TraceMeta,
+    UnknownMessageType,
+    decode_message,
+)
+
+FIRMWARE_VERSION = (0, 3, 0)
+CHUNK_BYTES = 2048  # bulk payload per frame: 98 % wire efficiency, 4 KiB frame buffers
+MAX_MEASUREMENTS = 4  # RAM slots, the baseline included (4 x 96 KB of the 512 KB SRAM)
+MAX_DI_MAPS = 2
+MAX_DI_PIXELS = 65536  # float32: 256 KB
+MAX_SAMPLES = 8000  # 800 us at 10 MS/s (paper, section 3.2)
+MAX_CHANNELS = 32  # the channel mask is 32 bits wide
+REPLY_CACHE_SIZE = 16
+SHOT_PERIOD_S = 0.005  # time per averaged shot (pulse repetition), for ACQUIRE's service time
+SUPPLY_V = 5.0  # USB-powered Cmod A7
+
+
+class NodeSetupError(ValueError):
+    """A scenario the node cannot represent on the wire (too many channels, long node id)."""
+
+
+class _Refused(Exception):
+    """Internal: answer the current request with an ERROR reply."""
+
+    def __init__(self, code: ErrorCode, detail: str) -> None:
+        super().__init__(detail)
+        self.code = code
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class _Stored:
+    measurement_id: int
+    is_baseline: bool
+    channel_mask: int
+    acquisition: physics.Acquisition
+    measurement: Measurement  # all enabled channels, full rate
+
+
+@dataclass(frozen=True)
+class _StoredDi:
+    reply: ComputeDiReply
+    grid: Grid
+    pixels: np.ndarray  # float32 [n_axial, n_angle]
+
+
+class MockNode:
+    """One simulated FPGA node; ``clock()`` gives seconds (monotonic)."""
+
+    def __init__(self, scenario: NodeScenario, clock: Callable[[], float] = time.monotonic) -> None:
+        n_rx = len(scenario.rings.rx_angles)
+        if n_rx > MAX_CHANNELS:
+            raise NodeSetupError(f"{scenario.node_id}: {n_rx} receivers exceed the {MAX_CHANNELS}-bit channel mask")
+        if len(scenario.node_id.encode("utf-8")) > 32:
+            raise NodeSetupError(f"node id {scenario.node_id!r} is longer than 32 bytes")
+        self.scenario = scenario
+        self.clock = clock
+        self._epoch = clock()  # scenario time 0: defects grow and temperature drifts from here
+        self._rng = np.random.default_rng(scenario.seed)
+        self._boot_rng = random.Random(scenario.seed ^ 0x5EED)
+        self.protocol_version = scenario.faults.protocol_version or PROTOCOL_VERSION
+        self.crc_errors = 0
+        self.framing_errors = 0
+        self.boot()
+
+    # ------------------------------------------------------------------ power
+    def boot(self) -> None:
+        """Power-up (or reboot): every RAM state is lost; a new boot id is drawn."""
+        self.boot_id = self._boot_rng.randrange(1, 2**32)
+        self._boot_time = self.clock()
+        self._seq = 0
+        self._next_measurement_id = 1
+        self._next_di_id = 1
+        self._measurements: OrderedDict[int, _Stored] = OrderedDict()
+        self._baseline_id = 0
+        self._di_maps: OrderedDict[int, _StoredDi] = OrderedDict()
+        self._cache: OrderedDict[int, tuple[int, bytes, list[Frame]]] = OrderedDict()
+        self.rejected_requests = 0
+        self.last_service_s = 0.0
+        acq = self.scenario.acquisition
+        self.config = ConfigureReply(
+            float(self.scenario.excitation.frequency_hz), self.scenario.excitation.cycles, acq.averaging,
+            (1 << len(self.scenario.rings.rx_angles)) - 1, acq.n_samples,
+        )
+
+    def note_frame_error(self, crc: bool) -> None:
+        """The server's decoder rejected a frame (counted in STATUS)."""
+        if crc:
+            self.crc_errors += 1
+        else:
+            self.framing_errors += 1
+
+    # ------------------------------------------------------------------ dispatch
+    def handle(self, request: Frame) -> list[Frame]:
+        """Reply frames for one request frame (empty for frames that are not requests)."""
+        self.last_service_s = 0.0
+        if request.is_reply:
+            return []
+        if request.version != self.protocol_version:
+            return self._error(request, ErrorCode.BAD_VERSION, f"node speaks version {self.protocol_version}")
+        cached = self._cache.get(request.request_id)
+        if cached is not None and cached[0] == request.msg_type and cached[1] == request.payload:
+            return [dataclasses.replace(f, flags=f.flags | FLAG_CACHED, seq=self._next_seq()) for f in cached[2]]
+        try:
+            message = decode_message(request.msg_type, request.payload)
+        except UnknownMessageType as exc:
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, str(exc))
+        except MessageError as exc:
+            return self._error(request, ErrorCode.MALFORMED, str(exc))
+        handler = self._HANDLERS.get(type(message))
+        if handler is None:
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, f"{type(message).__name__} is not a request")
+        try:
+            replies = handler(self, message)
+        except _Refused as refused:
+            return self._error(request, refused.code, refused.detail)
+        frames = self._frames(request, replies)
+        if isinstance(message, (ConfigureRequest, AcquireRequest, ComputeDiRequest)):
+            self._cache[request.request_id] = (request.msg_type, request.payload, frames)
+            while len(self._cache) > REPLY_CACHE_SIZE:
+                self._cache.popitem(last=False)
+        return frames
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return self._seq
+
+    def _frames(self, request: Frame, replies: list[Message]) -> list[Frame]:
+        frames = []
+        for i, message in enumerate(replies):
+            flags = FLAG_REPLY | (FLAG_LAST if i == len(replies) - 1 else 0)
+            frames.append(Frame(message.TYPE, request.request_id, message.encode(), flags,
+                                self._next_seq(), self.protocol_version))
+        return frames
+
+    def _error(self, request: Frame, code: ErrorCode, detail: str) -> list[Frame]:
+        self.rejected_requests += 1
+        return self._frames(request, [ErrorReply(int(code), request.msg_type & 0xFF, detail)])
+
+    # ------------------------------------------------------------------ commands
+    def _info(self, message: InfoRequest) -> list[Message]:
+        scn = self.scenario
+        tx, rx = tuple(scn.rings.tx_angles), tuple(scn.rings.rx_angles)
+        return [InfoReply(
+            scn.node_id, *FIRMWARE_VERSION, self.protocol_version,
+            CAP_ON_BOARD_DI | CAP_BASELINE_SLOT | CAP_CHUNK_RETRANSMIT, self.boot_id, MAX_FRAME_BYTES,
+            CHUNK_BYTES, len(rx), scn.acquisition.adc_bits, scn.acquisition.decimation, MAX_MEASUREMENTS,
+            float(scn.acquisition.fs_hz), self._max_samples(), float(scn.rings.tx_rx_distance_mm),
+            float(scn.pipe.outer_circumference_mm), float(scn.pipe.velocity_m_s), len(tx), len(rx), tx, rx,
+        )]
+
+    def _max_samples(self) -> int:
+        return max(MAX_SAMPLES, self.scenario.acquisition.n_samples)
+
+    def _status(self, message: StatusRequest) -> list[Message]:
+        last = next(reversed(self._measurements.values()), None)
+        temperature = last.acquisition.temperature_c if last else self.scenario.temperature.mean_c
+        return [StatusReply(
+            int(self.clock() - self._boot_time), self.boot_id, float(temperature), SUPPLY_V,
+            self.crc_errors, self.framing_errors, self.rejected_requests, self._baseline_id,
+            len(self._measurements), 0,
+        )]
+
+    def _configure(self, message: ConfigureRequest) -> list[Message]:
+        n_rx = len(self.scenario.rings.rx_angles)
+        if not (1e3 <= message.excitation_hz <= 1e6 and math.isfinite(message.excitation_hz)):
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "excitation_hz outside 1 kHz..1 MHz")
+        if not 1 <= message.cycles <= 50:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "cycles outside 1..50")
+        if not 1 <= message.averaging <= 10000:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "averaging outside 1..10000")
+        if message.channel_mask == 0 or message.channel_mask >> n_rx:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask must select channels of 0..{n_rx - 1}")
+        if not 2 <= message.n_samples <= self._max_samples():
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"n_samples outside 2..{self._max_samples()}")
+        self.config = ConfigureReply(float(np.float32(message.excitation_hz)), message.cycles, message.averaging,
+                                     message.channel_mask, message.n_samples)
+        return [self.config]
+
+    def _configured_scenario(self) -> NodeScenario:
+        scn, cfg = self.scenario, self.config
+        return scn.model_copy(update={
+            "excitation": scn.excitation.model_copy(update={"frequency_hz": cfg.excitation_hz, "cycles": cfg.cycles}),
+            "acquisition": scn.acquisition.model_copy(update={"averaging": cfg.averaging, "n_samples": cfg.n_samples}),
+        })
+
+    def _acquire(self, message: AcquireRequest) -> list[Message]:
+        scn = self._configured_scenario()
+        acquisition = physics.acquire(scn, self.clock() - self._epoch, self._rng)
+        rows = [i for i in range(len(scn.rings.rx_angles)) if self.config.channel_mask >> i & 1]
+        acquisition = dataclasses.replace(acquisition, codes=np.ascontiguousarray(acquisition.codes[rows]))
+        full = acquisition.to_measurement(scn)
+        if full.n_rx != len(rows):
+            full = dataclasses.replace(full, traces=full.traces[rows], rx_angles_deg=full.rx_angles_deg[rows])
+        measurement_id = self._next_measurement_id
+        self._next_measurement_id += 1
+        stored = _Stored(measurement_id, bool(message.as_baseline), self.config.channel_mask, acquisition, full)
+        if message.as_baseline:
+            self._measurements.pop(self._baseline_id, None)
+            self._baseline_id = measurement_id
+        self._measurements[measurement_id] = stored
+        while len(self._measurements) > MAX_MEASUREMENTS:  # evict the oldest, never the baseline
+            oldest = next(k for k in self._measurements if k != self._baseline_id)
+            del self._measurements[oldest]
+        self.last_service_s = self.config.averaging * SHOT_PERIOD_S
+        return [AcquireReply(measurement_id, int(stored.is_baseline), float(acquisition.temperature_c),
+                             self.config.channel_mask, self.config.n_samples,
+                             int(self.clock() - self._boot_time), self.boot_id)]
+
+    def _stored(self, measurement_id: int) -> _Stored:
+        stored = self._measurements.get(measurement_id)
+        if stored is None:
+            raise _Refused(ErrorCode.NO_SUCH_MEASUREMENT, f"measurement {measurement_id} is not in RAM")
+        return stored
+
+    def _read_traces(self, message: ReadTracesRequest) -> list[Message]:
+        stored = self._stored(message.measurement_id)
+        n = stored.acquisition.codes.shape[1]
+        if message.channel_mask == 0 or message.channel_mask & ~stored.channel_mask:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask 0x{message.channel_mask:X} not in 0x{stored.channel_mask:X}")
+        count = message.count or n - message.start
+        if message.start >= n or count < 1 or message.start + count > n:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"samples {message.start}+{count} outside 0..{n}")
+        stored_channels = [i for i in range(MAX_CHANNELS) if stored.channel_mask >> i & 1]
+        rows = [stored_channels.index(i) for i in stored_channels if message.channel_mask >> i & 1]
+        codes = stored.acquisition.codes[rows, message.start : message.start + count]
+        data = np.ascontiguousarray(codes, dtype="<i2").tobytes()
+        meta = TraceMeta(
+            self.boot_id, stored.measurement_id, int(stored.is_baseline), message.channel_mask, message.start,
+            count, float(stored.acquisition.fs_hz), float(stored.acquisition.t0_s),
+            float(stored.acquisition.volts_per_code), float(stored.acquisition.temperature_c),
+            self.scenario.acquisition.adc_bits, len(data), CHUNK_BYTES, n_chunks_for(len(data), CHUNK_BYTES),
+            crc32c(data),
+        )
+        return [meta, *self._chunks(data, message.chunks)]
+
+    def _chunks(self, data: bytes, wanted: tuple[int, ...]) -> list[BulkChunk]:
+        pieces = split_chunks(data, CHUNK_BYTES)
+        indices = sorted(set(wanted)) if wanted else range(len(pieces))
+        if any(i >= len(pieces) for i in indices):
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"chunk index beyond {len(pieces)} chunks")
+        return [BulkChunk(i, len(pieces), pieces[i]) for i in indices]
+
+    def _decimated(self, stored: _Stored, factor: int) -> Measurement:
+        full = stored.measurement
+        codes = physics.decimate_codes(stored.acquisition.codes, factor)
+        traces = np.asarray(codes, dtype=np.float64) * stored.acquisition.volts_per_code
+        return dataclasses.replace(full, traces=traces, fs_hz=full.fs_hz / factor)
+
+    def _grid(self, message: ComputeDiRequest) -> Grid:
+        if message.axial_count == 0:
+            return Grid.default(self.scenario.rings.tx_rx_distance_mm, axial_step_mm=2.0, angle_step_deg=2.0)
+        try:
+            grid = Grid(message.axial_start_mm, message.axial_step_mm, message.axial_count,
+                        message.angle_start_deg, message.angle_step_deg, message.angle_count)
+        except GridError as exc:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid: {exc}") from exc
+        if grid.axial_count * grid.angle_count > MAX_DI_PIXELS:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid has more than {MAX_DI_PIXELS} pixels")
+        return grid
+
+    def _compute_di(self, message: ComputeDiRequest) -> list[Message]:
+        baseline_id = message.baseline_id or self._baseline_id
+        if baseline_id == 0:
+            raise _Refused(ErrorCode.NO_BASELINE, "no baseline stored")
+        baseline, current = self._stored(baseline_id), self._stored(message.current_id)
+        factor = message.decimation or self.scenario.acquisition.decimation
+        if not 1 <= factor <= 100:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "decimation outside 1..100")
+        grid = self._grid(message)
+        try:
+            di = compute_di_map(self._decimated(baseline, factor), self._decimated(current, factor), grid)
+        except BaselineMismatch as exc:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"baseline mismatch: {exc}") from exc
+        pixels = np.asarray(di.pixels, dtype=np.float32)
+        peak = np.unravel_index(int(np.argmax(pixels)), pixels.shape)
+        reply = ComputeDiReply(
+            self._next_di_id, current.measurement_id, baseline.measurement_id, factor, grid.axial_count,
+            grid.angle_count, float(pixels[peak]), float(grid.axial_mm[peak[0]]), float(grid.angle_deg[peak[1]]),
+        )
+        self._next_di_id += 1
+        self._di_maps[reply.di_id] = _StoredDi(reply, grid, pixels)
+        while len(self._di_maps) > MAX_DI_MAPS:
+            self._di_maps.popitem(last=False)
+        return [reply]
+
+    def _read_di(self, message: ReadDiRequest) -> list[Message]:
+        stored = self._di_maps.get(message.di_id)
+        if stored is None:
+            raise _Refused(ErrorCode.NO_SUCH_DI, f"DI map {message.di_id} is not in RAM")
+        data = np.ascontiguousarray(stored.pixels, dtype="<f4").tobytes()
+        r, g = stored.reply, stored.grid
+        meta = DiMeta(
+            self.boot_id, r.di_id, r.current_id, r.baseline_id, r.decimation, g.axial_count, g.angle_count,
+            g.axial_start_mm, g.axial_step_mm, g.angle_start_deg, g.angle_step_deg, len(data), CHUNK_BYTES,
+            n_chunks_for(len(data), CHUNK_BYTES), crc32c(data),
+        )
+        return [meta, *self._chunks(data, message.chunks)]
+
+    _HANDLERS: dict[type, Callable] = {
+        InfoRequest: _info,
+        StatusRequest: _status,
+        ConfigureRequest: _configure,
+        AcquireRequest: _acquire,
+        ReadTracesRequest: _read_traces,
+        ComputeDiRequest: _compute_di,
+        ReadDiRequest: _read_di,
+    }
