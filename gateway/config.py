@@ -1,0 +1,155 @@
+"""The gateway's settings: one TOML file, validated, overridable by PIPESENTRY_* environment variables.
+
+Environment variables use ``__`` between levels, e.g. ``PIPESENTRY_DATABASE__URL`` or
+``PIPESENTRY_LOGGING__JSON=true``. A config error names the offending key and the daemon does
+not start half-configured.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
+
+
+class ConfigError(ValueError):
+    """The configuration is invalid; the message names the offending key(s)."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class DatabaseSettings(_Section):
+    url: str = "sqlite:///pipesentry.db"
+
+
+class RetentionSettings(_Section):
+    raw_traces_days: float = Field(365.0, gt=0, description="raw traces older than this are pruned")
+    prune_batch: int = Field(50, ge=1, le=10_000, description="measurements pruned per transaction")
+    prune_every_s: float = Field(3600.0, gt=0)
+
+
+class LoggingSettings(_Section):
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    json_lines: bool = Field(False, alias="json", description="one JSON object per log line")
+
+
+class ThresholdSettings(_Section):
+    """Damage flagging on the DI peak (normalised DI, see docs/imaging.md)."""
+
+    mode: Literal["absolute", "calibrated"] = "calibrated"
+    absolute: float | None = Field(None, gt=0, description="threshold when mode = absolute")
+    calibration_count: int = Field(10, ge=2, description="K baseline-condition measurements for mode = calibrated")
+    false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement; sets k in mean + k*sigma")
+    hysteresis_count: int = Field(3, ge=1, description="M consecutive exceedances to flag damage, M below to clear")
+
+    @model_validator(mode="after")
+    def _absolute_needs_a_value(self) -> "ThresholdSettings":
+        if self.mode == "absolute" and self.absolute is None:
+            raise ValueError("mode = 'absolute' needs 'absolute' set to the threshold value")
+        return self
+
+
+class GeometryOverride(_Section):
+    """Geometry that overrides what the node reports in INFO (e.g. a node configured wrongly)."""
+
+    rx_angles_deg: list[float] | None = None
+    tx_angles_deg: list[float] | None = None
+    tx_rx_distance_mm: float | None = Field(None, gt=0)
+    circumference_mm: float | None = Field(None, gt=0)
+    velocity_m_s: float | None = Field(None, gt=0)
+    pipe_length_mm: float | None = Field(None, gt=0)
+    tx_axial_mm: float | None = Field(None, ge=0)
+
+
+class NodeSettings(_Section):
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    url: str = Field(min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://host:port, loop://")
+    baud: int = Field(230400, gt=0)
+    interval_s: float = Field(60.0, gt=0, description="time between measurement cycles")
+    timeout_s: float = Field(2.0, gt=0, description="reply timeout per command")
+    retries: int = Field(3, ge=0, le=20)
+    read_node_di: bool = Field(True, description="also read the node's own on-board DI map")
+    commissioning_count: int = Field(1, ge=1, le=100, description="first N measurements become baselines")
+    averaging: int | None = Field(None, ge=1, le=1024)
+    geometry: GeometryOverride = GeometryOverride()
+    threshold: ThresholdSettings = ThresholdSettings()
+
+
+class GatewaySettings(BaseSettings):
+    """Everything the gateway daemon needs, in one place."""
+
+    model_config = SettingsConfigDict(env_prefix="PIPESENTRY_", env_nested_delimiter="__", extra="forbid")
+
+    database: DatabaseSettings = DatabaseSettings()
+    retention: RetentionSettings = RetentionSettings()
+    logging: LoggingSettings = LoggingSettings()
+    reopen_backoff_max_s: float = Field(60.0, gt=0, description="cap of the exponential backoff to reopen a port")
+    shutdown_timeout_s: float = Field(5.0, gt=0)
+    watchdog_stall_s: float = Field(
+        0.0, ge=0, description="a worker without progress for this long stops watchdog pings (0 = 3 x interval)"
+    )
+    nodes: list[NodeSettings] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique_nodes(self) -> "GatewaySettings":
+        ids = [n.id for n in self.nodes]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"node ids must be unique, repeated: {', '.join(dup)}")
+        urls = [n.url for n in self.nodes]
+        dup_urls = sorted({u for u in urls if urls.count(u) > 1 and not u.startswith("loop://")})
+        if dup_urls:
+            raise ValueError(f"two nodes share a port: {', '.join(dup_urls)}")
+        return self
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # Highest priority first: environment, then explicit arguments, then the TOML file.
+        return (env_settings, init_settings, TomlConfigSettingsSource(settings_cls))
+
+
+def _format_errors(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        key = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        parts.append(f"{key}: {err['msg']}")
+    return "; ".join(parts)
+
+
+def load_settings(path: str | Path) -> GatewaySettings:
+    """Read and validate the gateway config; raise ConfigError naming every offending key."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            tomllib.load(fh)  # surface TOML syntax errors with their line before validation
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+    class _FromFile(GatewaySettings):
+        model_config = SettingsConfigDict(**{**GatewaySettings.model_config, "toml_file": path})
+
+    try:
+        return _FromFile()
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: {_format_errors(exc)}") from None
+
+
+def false_alarm_k(false_alarm_rate: float) -> float:
+    """k in mean + k*sigma for a one-sided Gaussian tail of the given probability."""
+    from scipy.stats import norm
+
+    return float(norm.isf(false_alarm_rate)) if 0 < false_alarm_rate < 1 else math.inf

@@ -1,0 +1,81 @@
+"""Damage flagging: a threshold on the DI peak with hysteresis, and threshold calibration.
+
+States: ``ok -> suspected -> damage`` and back. The first exceedance makes a node
+``suspected``; M consecutive exceedances (counting the first) make it ``damage``; a reading
+below the threshold while suspected returns it to ``ok``; from ``damage`` it takes M
+consecutive readings below to return to ``ok``. ``no_valid_baseline`` is entered when the
+imaging abstains (no baseline matches the current conditions): monitoring is blind, not
+healthy, and the counters restart when valid readings return.
+"""
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, replace
+from enum import StrEnum
+
+from gateway.config import ThresholdSettings, false_alarm_k
+
+
+class NodeState(StrEnum):
+    COMMISSIONING = "commissioning"  # collecting baselines
+    CALIBRATING = "calibrating"  # collecting baseline-condition DI peaks for the threshold
+    OK = "ok"
+    SUSPECTED = "suspected"
+    DAMAGE = "damage"
+    NO_VALID_BASELINE = "no_valid_baseline"
+
+
+@dataclass(frozen=True)
+class FlagState:
+    """What the flagger remembers between measurements of one node."""
+
+    state: NodeState = NodeState.OK
+    above: int = 0  # consecutive readings above the threshold
+    below: int = 0  # consecutive readings below the threshold (counted while in damage)
+
+
+def step(prev: FlagState, peak_di: float | None, threshold: float, hysteresis_count: int) -> FlagState:
+    """The next state after one reading. ``peak_di=None`` means the imaging abstained."""
+    m = hysteresis_count
+    if peak_di is None:
+        return FlagState(NodeState.NO_VALID_BASELINE)
+    state = prev.state if prev.state != NodeState.NO_VALID_BASELINE else NodeState.OK
+    if peak_di > threshold:
+        above = prev.above + 1 if state in (NodeState.SUSPECTED, NodeState.DAMAGE) else 1
+        if state == NodeState.DAMAGE or above >= m:
+            return FlagState(NodeState.DAMAGE, above=above, below=0)
+        return FlagState(NodeState.SUSPECTED, above=above, below=0)
+    if state == NodeState.DAMAGE:
+        below = prev.below + 1
+        if below >= m:
+            return FlagState(NodeState.OK)
+        return replace(prev, state=NodeState.DAMAGE, above=0, below=below)
+    return FlagState(NodeState.OK)
+
+
+class CalibrationError(ValueError):
+    """Too few or degenerate baseline-condition readings to calibrate a threshold."""
+
+
+def calibrated_threshold(peaks: list[float], false_alarm_rate: float) -> float:
+    """mean + k*sigma of baseline-condition DI peaks, k from the false-alarm rate (Gaussian tail).
+
+    sigma has a floor of 1 % of the mean so that identical readings (a noise-free simulator)
+    do not give a threshold that any noise would cross.
+    """
+    values = [float(p) for p in peaks if math.isfinite(p)]
+    if len(values) < 2:
+        raise CalibrationError(f"need at least 2 finite DI peaks to calibrate, got {len(values)}")
+    mean = statistics.fmean(values)
+    sigma = max(statistics.stdev(values), 0.01 * abs(mean), 1e-12)
+    return mean + false_alarm_k(false_alarm_rate) * sigma
+
+
+def threshold_for(settings: ThresholdSettings, calibration_peaks: list[float]) -> float | None:
+    """The node's threshold, or None while a calibrated threshold still lacks readings."""
+    if settings.mode == "absolute":
+        return float(settings.absolute)
+    if len(calibration_peaks) < settings.calibration_count:
+        return None
+    return calibrated_threshold(calibration_peaks[: settings.calibration_count], settings.false_alarm_rate)

@@ -1,0 +1,85 @@
+"""Damage flagging: hysteresis ok -> suspected -> damage and back, and threshold calibration."""
+import math
+
+import pytest
+from hypothesis import given, strategies as st
+
+from gateway.config import ThresholdSettings
+from gateway.flagging import (
+    CalibrationError,
+    FlagState,
+    NodeState,
+    calibrated_threshold,
+    step,
+    threshold_for,
+)
+
+
+def run(readings, threshold=1.0, m=3):
+    state, history = FlagState(), []
+    for r in readings:
+        state = step(state, r, threshold, m)
+        history.append(state.state)
+    return history
+
+
+def test_damage_needs_m_consecutive_exceedances():
+    assert run([2, 2, 2]) == [NodeState.SUSPECTED, NodeState.SUSPECTED, NodeState.DAMAGE]
+
+
+def test_a_single_exceedance_is_only_suspected_and_returns_to_ok():
+    assert run([2, 0.5, 2, 0.5]) == [NodeState.SUSPECTED, NodeState.OK, NodeState.SUSPECTED, NodeState.OK]
+
+
+def test_damage_clears_only_after_m_consecutive_readings_below():
+    h = run([2, 2, 2, 0.5, 0.5, 2, 0.5, 0.5, 0.5])
+    assert h[2:] == [NodeState.DAMAGE] * 6 + [NodeState.OK]
+
+
+def test_m_of_one_flags_at_once():
+    assert run([2, 0.5], m=1) == [NodeState.DAMAGE, NodeState.OK]
+
+
+def test_abstention_is_its_own_state_and_restarts_the_count():
+    h = run([2, 2, None, 2, 2, 2])
+    assert h == [
+        NodeState.SUSPECTED,
+        NodeState.SUSPECTED,
+        NodeState.NO_VALID_BASELINE,
+        NodeState.SUSPECTED,
+        NodeState.SUSPECTED,
+        NodeState.DAMAGE,
+    ]
+
+
+@given(st.lists(st.one_of(st.none(), st.floats(0, 3)), max_size=60), st.integers(1, 5))
+def test_damage_is_never_flagged_without_m_exceedances_in_a_row(readings, m):
+    state, run_len = FlagState(), 0
+    for r in readings:
+        prev = state.state
+        state = step(state, r, 1.0, m)
+        run_len = run_len + 1 if (r is not None and r > 1.0) else 0
+        if state.state == NodeState.DAMAGE and prev != NodeState.DAMAGE:
+            assert run_len >= m
+
+
+def test_calibrated_threshold_is_mean_plus_k_sigma():
+    peaks = [1.0, 1.2, 0.8, 1.1, 0.9]
+    thr = calibrated_threshold(peaks, 0.0013499)  # k = 3
+    assert thr == pytest.approx(1.0 + 3 * 0.158113883, rel=1e-4)
+
+
+def test_identical_calibration_readings_still_give_a_margin():
+    assert calibrated_threshold([2.0] * 5, 1e-3) > 2.0
+
+
+def test_calibration_needs_two_readings():
+    with pytest.raises(CalibrationError):
+        calibrated_threshold([1.0, math.nan], 1e-3)
+
+
+def test_threshold_waits_for_k_calibration_readings():
+    s = ThresholdSettings(mode="calibrated", calibration_count=4)
+    assert threshold_for(s, [1.0, 1.1, 0.9]) is None
+    assert threshold_for(s, [1.0, 1.1, 0.9, 1.0]) > 1.1
+    assert threshold_for(ThresholdSettings(mode="absolute", absolute=7.0), []) == 7.0
