@@ -81,13 +81,24 @@ class SerialTransport:
             while True:
                 first = port.read(1)
                 if first:
-                    waiting = port.in_waiting
-                    return first + (port.read(waiting) if waiting else b"")
+                    return first + self._read_available(port)
                 if time.monotonic() >= deadline:
                     return b""
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise PortVanished(f"read from {self.url} failed: {exc}") from exc
+
+    @staticmethod
+    def _read_available(port: serial.SerialBase) -> bytes:
+        if isinstance(port, serial.Serial):  # a real device path: the driver knows the count
+            waiting = port.in_waiting
+            return port.read(waiting) if waiting else b""
+        # URL handlers (socket://) report in_waiting as 0/1: read non-blocking instead.
+        port.timeout = 0
+        try:
+            return port.read(65536)
+        finally:
+            port.timeout = _POLL_S
 
     def discard_input(self) -> None:
         port = self._require()

@@ -131,6 +131,11 @@ class MockNode:
             (1 << len(self.scenario.rings.rx_angles)) - 1, acq.n_samples,
         )
 
+    def stored_codes(self, measurement_id: int) -> np.ndarray | None:
+        """A copy of a stored measurement's codes [n_enabled_channels, n] (an oracle for tests)."""
+        stored = self._measurements.get(measurement_id)
+        return None if stored is None else stored.acquisition.codes.copy()
+
     def note_frame_error(self, crc: bool) -> None:
         """The server's decoder rejected a frame (counted in STATUS)."""
         if crc:
