@@ -150,18 +150,18 @@ def add_event(session: Session, event: EventInput, *, node_id: str | None, now: 
         payload=dict(event.payload),
         created_at=now,
     )
-    session.add(row)
-    for sink in event.sinks:
-        session.add(
-            DeliveryRow(
-                event_id=event.id,
-                sink=sink,
-                status=DeliveryStatus.PENDING,
-                attempts=0,
-                next_attempt_at=now,
-                last_error=None,
-            )
+    # Through the relationship, so the unit of work inserts the event before its deliveries.
+    row.deliveries = [
+        DeliveryRow(
+            sink=sink,
+            status=DeliveryStatus.PENDING,
+            attempts=0,
+            next_attempt_at=now,
+            last_error=None,
         )
+        for sink in event.sinks
+    ]
+    session.add(row)
     return row
 
 

@@ -253,6 +253,8 @@ class EventRow(Base):
     payload: Mapped[dict[str, Any]]
     created_at: Mapped[datetime]
 
+    deliveries: Mapped[list[DeliveryRow]] = relationship(back_populates="event", order_by="DeliveryRow.id")
+
 
 class DeliveryRow(Base):
     """One event's delivery state towards one sink (webhook, MQTT, ...)."""
@@ -270,6 +272,8 @@ class DeliveryRow(Base):
     attempts: Mapped[int] = mapped_column(Integer)
     next_attempt_at: Mapped[datetime | None]
     last_error: Mapped[str | None] = mapped_column(Text)
+
+    event: Mapped[EventRow] = relationship(back_populates="deliveries")
 
 
 class ApiKeyRow(Base):
