@@ -20,7 +20,7 @@ from mocknode.paths import Arrivals, direct_arrivals, scattered_arrivals
 from mocknode.scattering import MM_PER_M, ActiveDefect, defects_at, wavelength_mm
 from mocknode.scenario import NodeScenario
 
-SPECTRUM_FLOOR = 1e-6  # pulse spectrum bins below this fraction of the peak are not synthesised
+SPECTRUM_FLOOR = 1e-5  # pulse spectrum bins below this fraction of the peak are not synthesised
 
 
 class PhysicsError(ValueError):
