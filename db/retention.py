@@ -7,14 +7,17 @@ reproducible from its baseline's traces.
 """
 from __future__ import annotations
 
+import sqlite3
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 
-from sqlalchemy import select, text, update
+from sqlalchemy import select, update
+from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
+from db.errors import translate_db_error
 from db.models import BaselineRow, MeasurementKind, MeasurementRow
 
 SessionFactory = Callable[[], AbstractContextManager[Session]]
@@ -46,10 +49,10 @@ def prune_traces(
     cutoff = now - older_than
     ever_baseline = select(BaselineRow.measurement_id)
     pruned = 0
-    is_sqlite = False
+    engine: Engine | None = None
     for _ in range(max_batches):
         with session_factory() as session:
-            is_sqlite = session.get_bind().dialect.name == "sqlite"
+            engine = session.get_bind()
             ids = session.scalars(
                 select(MeasurementRow.id)
                 .where(
@@ -71,22 +74,35 @@ def prune_traces(
         pruned += len(ids)
         if len(ids) < batch_size:
             break
-    if is_sqlite and pruned:
-        reclaim_free_pages(session_factory)
+    if pruned and engine is not None and engine.dialect.name == "sqlite":
+        reclaim_free_pages(engine)
     return pruned
 
 
-def reclaim_free_pages(session_factory: SessionFactory, *, pages_per_step: int = VACUUM_PAGES_PER_STEP) -> int:
-    """SQLite: give free pages back to the file system, a bounded number per transaction.
+def reclaim_free_pages(
+    engine: Engine, *, pages_per_step: int = VACUUM_PAGES_PER_STEP, max_steps: int = MAX_VACUUM_STEPS
+) -> int:
+    """SQLite: give free pages back to the file system, ``pages_per_step`` per transaction.
 
-    Returns the number of pages still free afterwards (0 unless ``MAX_VACUUM_STEPS`` ran out).
+    Returns the number of pages still free afterwards (0 unless ``max_steps`` ran out).
     """
     remaining = 0
-    for _ in range(MAX_VACUUM_STEPS):
-        with session_factory() as session:
-            # The pragma frees one page per result row stepped, so all rows must be fetched.
-            session.execute(text(f"PRAGMA incremental_vacuum({int(pages_per_step)})")).all()
-            remaining = int(session.execute(text("PRAGMA freelist_count")).scalar_one())
+    for _ in range(max_steps):
+        pooled = engine.raw_connection()
+        try:
+            connection = pooled.driver_connection
+            # sqlite3's execute() steps a statement once, which frees only one page;
+            # executescript() runs it to completion, in its own autocommit transaction
+            # (our connections have isolation_level=None and none is open between uses).
+            connection.executescript(f"PRAGMA incremental_vacuum({int(pages_per_step)});")
+            remaining = int(connection.execute("PRAGMA freelist_count").fetchone()[0])
+        except sqlite3.Error as error:
+            mapped = translate_db_error(error)
+            if mapped is None:
+                raise
+            raise mapped from error
+        finally:
+            pooled.close()
         if remaining == 0:
             break
     return remaining
