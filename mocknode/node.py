@@ -18,7 +18,7 @@ import numpy as np
 
 from imaging.dimap import BaselineMismatch, compute_di_map
 from imaging.grid import Grid, GridError
-from imaging.measurement import Measurement
+from imaging.measurement import Measurement, MeasurementError
 from mocknode import physics
 from mocknode.scenario import NodeScenario
 from protocol.bulk import n_chunks_for, split_chunks
@@ -167,6 +167,9 @@ class MockNode:
             replies = handler(self, message)
         except _Refused as refused:
             return self._error(request, refused.code, refused.detail)
+        except (physics.PhysicsError, MeasurementError, GridError) as exc:
+            # The simulated hardware failed: answer like firmware would, keep serving.
+            return self._error(request, ErrorCode.HARDWARE_FAULT, f"{type(exc).__name__}: {exc}")
         frames = self._frames(request, replies)
         if isinstance(message, (ConfigureRequest, AcquireRequest, ComputeDiRequest)):
             self._cache[request.request_id] = (request.msg_type, request.payload, frames)
@@ -241,10 +244,10 @@ class MockNode:
         scn = self._configured_scenario()
         acquisition = physics.acquire(scn, self.clock() - self._epoch, self._rng)
         rows = [i for i in range(len(scn.rings.rx_angles)) if self.config.channel_mask >> i & 1]
-        acquisition = dataclasses.replace(acquisition, codes=np.ascontiguousarray(acquisition.codes[rows]))
         full = acquisition.to_measurement(scn)
-        if full.n_rx != len(rows):
+        if full.n_rx != len(rows):  # keep only the enabled receivers, as the FPGA does
             full = dataclasses.replace(full, traces=full.traces[rows], rx_angles_deg=full.rx_angles_deg[rows])
+            acquisition = dataclasses.replace(acquisition, codes=np.ascontiguousarray(acquisition.codes[rows]))
         measurement_id = self._next_measurement_id
         self._next_measurement_id += 1
         stored = _Stored(measurement_id, bool(message.as_baseline), self.config.channel_mask, acquisition, full)

@@ -1,0 +1,77 @@
+"""``pipesentry mock-node``: serve simulated FPGA nodes on pseudo-terminals or TCP until SIGINT/SIGTERM."""
+from __future__ import annotations
+
+import signal
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from pydantic import ValidationError
+
+from mocknode.faults import FaultSpec
+from mocknode.scenario import NodeScenario, ScenarioError, default_scenario, load_scenario
+from mocknode.server import MockNodeServer, ServerError
+
+
+def _with_faults(node: NodeScenario, overrides: dict) -> NodeScenario:
+    if not overrides:
+        return node
+    faults = FaultSpec(**{**node.faults.model_dump(), **overrides})
+    return node.model_copy(update={"faults": faults})
+
+
+def _announce(node_id: str, url: str) -> None:
+    print(f"{node_id} {url}", flush=True)
+
+
+def mock_node(
+    scenario: Annotated[Optional[Path], typer.Option(help="scenario TOML; default: built-in scenario")] = None,
+    nodes: Annotated[int, typer.Option(min=1, max=256, help="nodes of the built-in scenario")] = 1,
+    tcp: Annotated[bool, typer.Option(help="serve on TCP 127.0.0.1 (socket://) instead of pseudo-terminals")] = False,
+    port: Annotated[int, typer.Option(min=0, max=65535, help="first TCP port (0: ephemeral)")] = 0,
+    baud: Annotated[int, typer.Option(min=300, help="line rate for pacing, bit/s (8N1)")] = 230400,
+    pace: Annotated[bool, typer.Option(help="send no faster than baud/10 bytes/s, like the real UART")] = False,
+    link_dir: Annotated[Optional[Path], typer.Option(help="keep DIR/<node_id> symlinks to the current pty")] = None,
+    corrupt_byte_rate: Annotated[Optional[float], typer.Option(help="fault: bit flips per sent byte")] = None,
+    drop_byte_rate: Annotated[Optional[float], typer.Option(help="fault: dropped sent bytes per byte")] = None,
+    stall_probability: Annotated[Optional[float], typer.Option(help="fault: per request, hang stall_s")] = None,
+    stall_s: Annotated[Optional[float], typer.Option(help="fault: length of a stall, s")] = None,
+    disconnect_every_s: Annotated[Optional[float], typer.Option(help="fault: drop the port every N s")] = None,
+    reconnect_after_s: Annotated[Optional[float], typer.Option(help="fault: port absent for N s")] = None,
+    reboot_probability: Annotated[Optional[float], typer.Option(help="fault: reboot per bulk frame sent")] = None,
+    garbage_on_power_up: Annotated[Optional[int], typer.Option(help="fault: garbage bytes at boot")] = None,
+    protocol_version: Annotated[Optional[int], typer.Option(help="fault: announce this protocol version")] = None,
+) -> None:
+    """Serve simulated nodes; prints "<node_id> <port>" for every port it opens (again after a reconnect)."""
+    overrides = {
+        key: value for key, value in {
+            "corrupt_byte_rate": corrupt_byte_rate, "drop_byte_rate": drop_byte_rate,
+            "stall_probability": stall_probability, "stall_s": stall_s,
+            "disconnect_every_s": disconnect_every_s, "reconnect_after_s": reconnect_after_s,
+            "reboot_probability": reboot_probability, "garbage_on_power_up": garbage_on_power_up,
+            "protocol_version": protocol_version,
+        }.items() if value is not None
+    }
+    try:
+        fleet = load_scenario(scenario) if scenario is not None else default_scenario(nodes)
+        node_scenarios = [_with_faults(node, overrides) for node in fleet.nodes]
+        server = MockNodeServer(node_scenarios, kind="tcp" if tcp else "pty", base_port=port, baud=baud,
+                                pace=pace, link_dir=link_dir, on_port=_announce)
+    except ValidationError as exc:
+        where = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        print(f"mock-node: bad fault option: {where}", file=sys.stderr)
+        raise typer.Exit(2) from None
+    except (ScenarioError, ServerError, ValueError, OSError) as exc:
+        print(f"mock-node: {exc}".splitlines()[0], file=sys.stderr)
+        raise typer.Exit(2) from None
+
+    def _stop(signum: int, _frame: object) -> None:
+        server.stop_event.set()
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
+    server.start()
+    while not server.stop_event.wait(1.0):
+        pass  # the signal handler sets the event; wait() wakes on it
+    server.stop()
