@@ -18,6 +18,7 @@ _SQLITE_FULL = 13
 _PG_DISK_FULL = "53100"
 _PG_IO_ERROR = "58030"
 _PG_CONNECTION_CLASS = "08"
+_PG_SERVER_SHUTDOWN = ("57P01", "57P02", "57P03")  # admin/crash shutdown, cannot connect now
 
 
 class StorageError(Exception):
@@ -84,6 +85,7 @@ class InvalidCursor(StorageError):
 def translate_db_error(error: BaseException) -> StorageUnavailable | None:
     """Map a driver error to a typed :class:`StorageUnavailable`, or None if it is not one."""
     orig = error.orig if isinstance(error, sa_exc.DBAPIError) else error
+    invalidated = isinstance(error, sa_exc.DBAPIError) and error.connection_invalidated
     message = str(orig).splitlines()[0] if str(orig) else type(orig).__name__
     if isinstance(orig, sqlite3.Error):
         code = getattr(orig, "sqlite_errorcode", None)
@@ -96,12 +98,12 @@ def translate_db_error(error: BaseException) -> StorageUnavailable | None:
             return StorageBusy(f"SQLite: {message}")
         return None
     sqlstate = getattr(orig, "sqlstate", None)
-    if not isinstance(sqlstate, str):
-        return None
     if sqlstate == _PG_DISK_FULL:
         return StorageFull(f"PostgreSQL: {message}")
     if sqlstate == _PG_IO_ERROR:
         return StorageIOError(f"PostgreSQL: {message}")
-    if sqlstate.startswith(_PG_CONNECTION_CLASS):
-        return StorageConnectionLost(f"PostgreSQL: {message}")
+    if invalidated or (
+        isinstance(sqlstate, str) and (sqlstate.startswith(_PG_CONNECTION_CLASS) or sqlstate in _PG_SERVER_SHUTDOWN)
+    ):
+        return StorageConnectionLost(f"database connection lost: {message}")
     return None
