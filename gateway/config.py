@@ -75,7 +75,10 @@ class NodeSettings(_Section):
     retries: int = Field(3, ge=0, le=20)
     read_node_di: bool = Field(True, description="also read the node's own on-board DI map")
     commissioning_count: int = Field(1, ge=1, le=100, description="first N measurements become baselines")
-    averaging: int | None = Field(None, ge=1, le=1024)
+    excitation_hz: float = Field(85e3, ge=1e3, le=1e6, description="tone-burst centre frequency sent in CONFIGURE")
+    cycles: int = Field(5, ge=1, le=50)
+    averaging: int = Field(10, ge=1, le=10000, description="shots averaged per measurement (the paper: 10)")
+    n_samples: int = Field(6000, ge=16, description="record length per channel")
     geometry: GeometryOverride = GeometryOverride()
     threshold: ThresholdSettings = ThresholdSettings()
 

@@ -5,6 +5,7 @@ import typer
 
 from pipesentry.commands.analyze import analyze
 from pipesentry.commands.demo import demo
+from pipesentry.commands.gateway import gateway
 
 app = typer.Typer(
     help="PipeSentry: permanent guided-wave pipe monitoring.",
@@ -21,6 +22,7 @@ def _root() -> None:
 
 app.command()(analyze)
 app.command()(demo)
+app.command()(gateway)
 
 try:  # the mock node registers itself once its package is in place
     from mocknode.cli import mock_node

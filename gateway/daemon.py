@@ -1,0 +1,130 @@
+"""The gateway daemon: one worker per node, retention, signals, systemd readiness and watchdog."""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from datetime import timedelta
+
+from db.database import Database, open_database
+from db.errors import SchemaOutOfDate, StorageError
+from db.retention import prune_traces
+from gateway.config import GatewaySettings
+from gateway.watchdog import Heartbeats, sd_notify, watchdog_interval_s
+from gateway.worker import NodeWorker
+
+log = logging.getLogger("pipesentry.gateway")
+
+RETENTION = "retention"
+
+
+class Gateway:
+    """Owns the database, the node workers and the retention loop."""
+
+    def __init__(self, settings: GatewaySettings, db: Database) -> None:
+        self.settings = settings
+        self.db = db
+        self.stop = threading.Event()
+        self.heartbeats = Heartbeats()
+        self.workers = [
+            NodeWorker(node, db, self.heartbeats, self.stop, backoff_max_s=settings.reopen_backoff_max_s)
+            for node in settings.nodes
+        ]
+        self._retention = threading.Thread(target=self._retention_loop, name=RETENTION, daemon=True)
+
+    def stall_limits_s(self) -> dict[str, float]:
+        """How long each loop may go without a beat before the watchdog pings stop."""
+        fixed = self.settings.watchdog_stall_s
+        limits = {}
+        for w in self.workers:
+            node = w.settings
+            # A full cycle: several commands with retries, a bulk transfer, a wait between cycles.
+            cycle_s = node.interval_s + self.settings.reopen_backoff_max_s + 60 * node.timeout_s * (node.retries + 1)
+            limits[w.name] = fixed or 3 * cycle_s
+        limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
+        return limits
+
+    def start(self) -> None:
+        for w in self.workers:
+            w.thread.start()
+        self._retention.start()
+
+    def _retention_loop(self) -> None:
+        r = self.settings.retention
+        self.heartbeats.beat(RETENTION)
+        while not self.stop.is_set():
+            try:
+                pruned = prune_traces(self.db.write, timedelta(days=r.raw_traces_days), r.prune_batch)
+                if pruned:
+                    log.info("retention: pruned the raw traces of %d measurements", pruned)
+            except StorageError as exc:
+                log.error("retention failed, will retry: %s", exc)
+            except Exception:
+                log.exception("retention failed unexpectedly, will retry")
+            self.heartbeats.beat(RETENTION)
+            self.stop.wait(r.prune_every_s)
+
+    def shutdown(self, timeout_s: float) -> None:
+        """Stop the loops; a worker stuck in a transfer has its port closed to break out."""
+        self.stop.set()
+        deadline = time.monotonic() + timeout_s * 0.6
+        for w in self.workers:
+            w.thread.join(max(0.0, deadline - time.monotonic()))
+        for w in self.workers:
+            if w.thread.is_alive() and w.conn is not None:
+                try:
+                    w.conn.client.close()  # the blocked read fails at once; the write in flight rolls back
+                except Exception:
+                    pass
+        deadline = time.monotonic() + timeout_s * 0.3
+        for w in self.workers:
+            w.thread.join(max(0.0, deadline - time.monotonic()))
+        self._retention.join(max(0.0, deadline - time.monotonic()))
+        self.db.dispose()
+
+
+def run(settings: GatewaySettings) -> int:
+    """Run until SIGTERM/SIGINT; returns the process exit code."""
+    try:
+        db = open_database(settings.database.url, upgrade=True)
+    except SchemaOutOfDate as exc:
+        log.error("database schema cannot be used: %s", exc)
+        return 2
+    gateway = Gateway(settings, db)
+    signalled = threading.Event()
+
+    def on_signal(signum, _frame):
+        log.info("received %s, shutting down", signal.Signals(signum).name)
+        signalled.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    gateway.start()
+    log.info("gateway started: %d node(s), database %s", len(gateway.workers), _safe_url(settings.database.url))
+    sd_notify("READY=1\nSTATUS=polling nodes")
+    ping_s = watchdog_interval_s(default_s=5.0)
+    limits = gateway.stall_limits_s()
+    stalled_reported: list[str] = []
+    while not signalled.wait(ping_s):
+        stalled = gateway.heartbeats.stalled(limits)
+        if stalled:
+            if stalled != stalled_reported:
+                log.error("no progress in %s: watchdog pings stopped", ", ".join(stalled))
+                stalled_reported = stalled
+            continue
+        stalled_reported = []
+        sd_notify("WATCHDOG=1")
+    sd_notify("STOPPING=1")
+    gateway.shutdown(settings.shutdown_timeout_s)
+    log.info("gateway stopped")
+    return 0
+
+
+def _safe_url(url: str) -> str:
+    from sqlalchemy import make_url
+
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:
+        return "<unparseable url>"
