@@ -39,11 +39,13 @@ def heatmap_png(
         for k, est in enumerate(estimates):
             ax.plot(est.axial_mm, est.angle_deg, "x", color="white", markersize=14, markeredgewidth=3)
             ax.plot(est.axial_mm, est.angle_deg, "x", color="black", markersize=10, markeredgewidth=1.2)
+            right_half = est.axial_mm > extent[0] + 0.55 * (extent[1] - extent[0])
             ax.annotate(
                 f"estimate {k + 1}: {est.axial_mm:.0f} mm, {est.angle_deg:.0f}\u00b0",
                 (est.axial_mm, est.angle_deg),
                 textcoords="offset points",
-                xytext=(8, 8),
+                xytext=(-10, 8) if right_half else (8, 8),
+                ha="right" if right_half else "left",
                 color="white",
                 fontsize=9,
                 fontweight="bold",
