@@ -1,17 +1,23 @@
 """Specification of opening a database: pragmas, migrations to head, schema checks, locking."""
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
 import threading
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 import pytest
+from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
-from sqlalchemy import text
+from sqlalchemy import inspect, text
 
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageBusy
-from db.migrate import head_revision
+from db.migrate import alembic_config, head_revision, upgrade_to_head
 from db.models import Base
 from db.nodes import get_node, upsert_node
 from db.sqlite_setup import PAGE_SIZE_BYTES
@@ -147,3 +153,44 @@ def test_write_commits_on_success_and_rolls_back_on_error(any_db):
 def test_in_memory_sqlite_is_refused():
     with pytest.raises(ValueError, match="file URL"):
         open_database("sqlite://")
+
+
+def test_an_installed_copy_of_the_package_migrates_without_the_repository(tmp_path):
+    """What a wheel ships (the .py files and script.py.mako) is all migrating needs."""
+    repo_db = Path(__file__).resolve().parents[1] / "db"
+    site = tmp_path / "site-packages"
+    for source in [*repo_db.rglob("*.py"), *repo_db.rglob("*.mako")]:
+        target = site / "db" / source.relative_to(repo_db)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+    workdir = tmp_path / "elsewhere"
+    workdir.mkdir()
+    url = f"sqlite:///{tmp_path / 'installed.db'}"
+    program = (
+        "import db.migrate, sys; from db.database import open_database; "
+        "d = open_database(sys.argv[1]); print(db.migrate.__file__); print(d.schema_revision())"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", program, url],
+        cwd=workdir,
+        env={**os.environ, "PYTHONPATH": str(site)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    module_file, revision = result.stdout.split()
+    assert module_file.startswith(str(site))
+    assert revision == head_revision()
+
+
+def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
+    with any_db.engine.connect() as connection:
+        command.downgrade(alembic_config(connection), "base")
+        connection.commit()
+    assert any_db.schema_revision() is None
+    with any_db.session() as session:
+        tables = set(inspect(session.connection()).get_table_names()) - {"alembic_version"}
+    assert tables == set()
+    upgrade_to_head(any_db.engine)
+    assert any_db.schema_revision() == head_revision()
