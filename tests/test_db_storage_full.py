@@ -4,6 +4,7 @@ from __future__ import annotations
 import sqlite3
 
 import numpy as np
+import psycopg
 import psycopg.errors
 import pytest
 from sqlalchemy import event, func, select, text
@@ -12,7 +13,7 @@ from db.database import open_database
 from db.errors import StorageConnectionLost, StorageFull, StorageIOError, StorageUnavailable, translate_db_error
 from db.measurements import get_measurement, load_traces
 from db.models import MeasurementRow
-from db_fixtures import T0, minutes, sample_codes, sqlite_url, store_sample  # noqa: F401
+from db_fixtures import PG_ADMIN_CONNINFO, T0, minutes, postgres_db, postgres_url, sample_codes, sqlite_url, store_sample  # noqa: F401
 
 MAX_ATTEMPTS = 50
 
@@ -90,3 +91,16 @@ def test_real_sqlite_full_error_carries_the_code_we_map(tmp_path):
         connection.execute("INSERT INTO t VALUES (zeroblob(100000))")
     connection.close()
     assert isinstance(translate_db_error(raised.value), StorageFull)
+
+
+def test_postgres_backend_killed_mid_transaction_is_connection_lost_and_the_next_write_works(postgres_db):
+    with pytest.raises(StorageConnectionLost):
+        with postgres_db.write() as session:
+            pid = session.execute(text("SELECT pg_backend_pid()")).scalar_one()
+            with psycopg.connect(PG_ADMIN_CONNINFO, autocommit=True) as admin:
+                admin.execute("SELECT pg_terminate_backend(%s)", (pid,))
+            session.execute(text("SELECT 1"))
+    with postgres_db.write() as session:
+        store_sample(session)
+    with postgres_db.session() as session:
+        assert session.scalar(select(func.count()).select_from(MeasurementRow)) == 1
