@@ -97,6 +97,10 @@ def open_database(
     engine = create_db_engine(url, busy_timeout_ms=busy_timeout_ms)
     database = Database(engine)
     try:
+        found = database.schema_revision()
+        if found is not None and found not in migrate.known_revisions():
+            # Written by a newer release: neither upgrading nor using it is safe.
+            raise SchemaOutOfDate(found, migrate.head_revision())
         if upgrade:
             with _storage_errors():
                 migrate.upgrade_to_head(database._writer_engine)

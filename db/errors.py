@@ -34,7 +34,8 @@ class SchemaOutOfDate(StorageError):
         shown = current or "empty (no schema)"
         super().__init__(
             f"database schema is at revision {shown}, this code needs {head}; "
-            "run the gateway (or `open_database(url, upgrade=True)`) to migrate it"
+            "migrate it by starting the gateway (open_database(url, upgrade=True)), "
+            "or, if the revision is unknown, run a release at least as new as the one that wrote it"
         )
 
 

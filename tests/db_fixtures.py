@@ -23,8 +23,9 @@ from db.models import MapSource, MeasurementKind, MeasurementRow, NodeRow, NodeS
 from db.nodes import upsert_node
 from db.records import DetectionInput, DiMapInput, MapGrid, NodeGeometry, NodeInfo, StateChangeInput
 
-PG_ADMIN_CONNINFO = "host=127.0.0.1 port=5432 user=postgres dbname=test connect_timeout=3"
-PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+PG_PORT = int(os.environ.get("PIPESENTRY_TEST_PG_PORT", "5432"))  # another port: check skip/fail
+PG_ADMIN_CONNINFO = f"host=127.0.0.1 port={PG_PORT} user=postgres dbname=test connect_timeout=3"
+PG_URL = f"postgresql+psycopg://postgres@127.0.0.1:{PG_PORT}/test"
 T0 = datetime(2026, 3, 1, 12, 0, tzinfo=timezone.utc)
 N_CHANNELS = 8
 N_SAMPLES = 2048

@@ -73,7 +73,7 @@ def test_read_only_open_of_a_migrated_database_succeeds(sqlite_url):
     database.dispose()
 
 
-def test_read_only_open_refuses_a_database_from_a_newer_release(sqlite_url):
+def test_a_database_from_a_newer_release_is_refused(sqlite_url):
     open_database(sqlite_url).dispose()
     database = open_database(sqlite_url)
     with database.write() as session:
@@ -82,6 +82,8 @@ def test_read_only_open_refuses_a_database_from_a_newer_release(sqlite_url):
     with pytest.raises(SchemaOutOfDate, match="9999") as raised:
         open_database(sqlite_url, upgrade=False)
     assert raised.value.current == "9999"
+    with pytest.raises(SchemaOutOfDate, match="at least as new"):
+        open_database(sqlite_url, upgrade=True)  # the gateway must not touch it either
 
 
 def test_postgres_read_only_open_checks_the_schema_too(postgres_url):
