@@ -13,7 +13,16 @@ from db.database import open_database
 from db.errors import StorageConnectionLost, StorageFull, StorageIOError, StorageUnavailable, translate_db_error
 from db.measurements import get_measurement, load_traces
 from db.models import MeasurementRow
-from db_fixtures import PG_ADMIN_CONNINFO, T0, minutes, postgres_db, postgres_url, sample_codes, sqlite_url, store_sample  # noqa: F401
+from db_fixtures import (  # noqa: F401
+    PG_ADMIN_CONNINFO,
+    T0,
+    minutes,
+    postgres_db,
+    postgres_url,
+    sample_codes,
+    sqlite_url,
+    store_sample,
+)
 
 MAX_ATTEMPTS = 50
 
