@@ -1,9 +1,11 @@
 """Specification of storing measurements with their results, and reading them back."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from sqlalchemy import func, select, text, update
+from sqlalchemy import event, func, select, text, update
 from sqlalchemy.exc import IntegrityError
 
 from db.errors import CorruptBlob, InvalidCursor, NotFound, StateConflict
@@ -23,7 +25,7 @@ from db.models import (
 )
 from db.nodes import get_node, record_node_health, upsert_node
 from db.queries import detection_for, di_maps_for, latest_detection, measurements_page, state_history
-from db.records import DiMapInput, EventInput, MapSource, StateChangeInput
+from db.records import DetectionInput, DiMapInput, EventInput, MapSource, StateChangeInput
 from db_fixtures import (  # noqa: F401
     ALARM,
     GRID,
@@ -226,7 +228,7 @@ def test_latest_detection_and_state_history(any_db):
     with any_db.write() as session:
         assert latest_detection(session, "node-a") is None
         store_sample(session, acquired_at=T0, seed=1, detection=ALARM, state_change=TO_DAMAGE)
-        calm = ALARM.__class__(peak_di=0.1, threshold=0.3, state=NodeState.OK)
+        calm = DetectionInput(peak_di=0.1, threshold=0.3, state=NodeState.OK)
         last = store_sample(
             session, acquired_at=T0 + minutes(5), seed=2, detection=calm,
             state_change=StateChangeInput(NodeState.DAMAGE, NodeState.OK),
@@ -247,8 +249,7 @@ def test_node_refresh_keeps_state_and_health_is_recorded(any_db):
         store_sample(session, detection=ALARM, state_change=TO_DAMAGE)
         record_node_health(session, "node-a", online=False, error_counters={"crc": 3, "timeouts": 1})
     with any_db.write() as session:
-        refreshed = node_info("node-a")
-        upsert_node(session, refreshed.__class__(**{**refreshed.__dict__, "firmware": "1.5.0"}), seen_at=T0 + minutes(1))
+        upsert_node(session, replace(node_info("node-a"), firmware="1.5.0"), seen_at=T0 + minutes(1))
     with any_db.session() as session:
         node = session.get(NodeRow, "node-a")
         assert (node.firmware, node.state, node.online) == ("1.5.0", NodeState.DAMAGE, True)
@@ -261,7 +262,6 @@ def test_listing_measurements_does_not_load_blobs(sqlite_db):
     with sqlite_db.write() as session:
         store_sample(session)
     statements: list[str] = []
-    from sqlalchemy import event
 
     @event.listens_for(sqlite_db.engine, "before_cursor_execute")
     def _record(conn, cursor, statement, parameters, context, executemany):

@@ -14,6 +14,7 @@ from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect, text
+from sqlalchemy.exc import StatementError
 
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageBusy
@@ -105,9 +106,10 @@ def test_timestamps_come_back_timezone_aware_utc(any_db):
 
 
 def test_naive_datetimes_are_rejected(any_db):
-    with pytest.raises(Exception, match="naive datetime"):
+    with pytest.raises(StatementError, match="naive datetime") as raised:
         with any_db.write() as session:
             upsert_node(session, node_info("node-naive"), seen_at=datetime(2026, 3, 1, 12, 0))
+    assert isinstance(raised.value.orig, ValueError)
 
 
 def test_write_takes_the_sqlite_write_lock_at_begin(sqlite_url):
