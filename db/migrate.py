@@ -1,18 +1,16 @@
 """Alembic, configured from code: no alembic.ini, so an installed wheel can migrate.
 
 The revisions live in ``db/migrations/versions`` (shipped as package files). Developers
-add one with ``python -m db.migrate revision --url sqlite:///dev.db -m "what changes"``.
+add one with ``python -m db revision --url sqlite:///dev.db -m "what changes"``.
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import create_engine
 from sqlalchemy.engine import Connection, Engine
 
 MIGRATIONS_DIR = Path(__file__).resolve().with_name("migrations")
@@ -48,32 +46,3 @@ def upgrade_to_head(engine: Engine) -> None:
     with engine.connect() as connection:
         command.upgrade(alembic_config(connection), "head")
         connection.commit()
-
-
-def _main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m db.migrate", description=__doc__)
-    parser.add_argument("action", choices=["upgrade", "current", "revision"])
-    parser.add_argument("--url", required=True, help="database URL, e.g. sqlite:///var/pipesentry.db")
-    parser.add_argument("-m", "--message", help="revision message (for 'revision')")
-    args = parser.parse_args(argv)
-    if args.action == "upgrade":
-        from db.database import open_database  # the same engine set-up as production
-
-        open_database(args.url, upgrade=True).dispose()
-        return 0
-    engine = create_engine(args.url)
-    try:
-        with engine.connect() as connection:
-            if args.action == "current":
-                print(current_revision(connection) or "empty")
-                return 0
-            if not args.message:
-                parser.error("revision needs -m/--message")
-            command.revision(alembic_config(connection), message=args.message, autogenerate=True)
-            return 0
-    finally:
-        engine.dispose()
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())

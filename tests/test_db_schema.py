@@ -198,3 +198,26 @@ def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
     assert tables == set()
     upgrade_to_head(any_db.engine)
     assert any_db.schema_revision() == head_revision()
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "db", *args], capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[1]
+    )
+
+
+def test_command_line_upgrades_and_reports_the_revision(sqlite_url):
+    assert _cli("current", "--url", sqlite_url).stdout.strip() == "empty"
+    assert _cli("upgrade", "--url", sqlite_url).returncode == 0
+    assert _cli("current", "--url", sqlite_url).stdout.strip() == head_revision()
+
+
+def test_command_line_reports_a_storage_error_in_one_line_with_exit_code_2(sqlite_url):
+    open_database(sqlite_url).dispose()
+    database = open_database(sqlite_url)
+    with database.write() as session:
+        session.execute(text("UPDATE alembic_version SET version_num = 'future'"))
+    database.dispose()
+    result = _cli("upgrade", "--url", sqlite_url)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "future" in result.stderr and "Traceback" not in result.stderr
