@@ -74,7 +74,9 @@ def create_db_engine(url: str, *, busy_timeout_ms: int = sqlite_setup.DEFAULT_BU
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite":
         if not parsed.database or parsed.database == ":memory:":
-            raise ValueError("SQLite needs a file URL (sqlite:///path/to/file.db); in-memory databases are not supported")
+            raise ValueError(
+                "SQLite needs a file URL (sqlite:///path/to/file.db); in-memory databases are not supported"
+            )
         engine = create_engine(parsed)
         sqlite_setup.install(engine, busy_timeout_ms)
         return engine
