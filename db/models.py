@@ -41,6 +41,8 @@ NAMING_CONVENTION = {
 
 
 class NodeState(StrEnum):
+    COMMISSIONING = "commissioning"  # collecting its first baseline(s)
+    CALIBRATING = "calibrating"  # collecting baseline-condition DI peaks for its threshold
     OK = "ok"
     SUSPECTED = "suspected"
     DAMAGE = "damage"
@@ -218,7 +220,7 @@ class DetectionRow(Base):
     measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), unique=True)
     node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))
     peak_di: Mapped[float] = mapped_column(Float)
-    threshold: Mapped[float] = mapped_column(Float)
+    threshold: Mapped[float | None] = mapped_column(Float)  # None while the threshold is being calibrated
     axial_mm: Mapped[float | None] = mapped_column(Float)
     angle_deg: Mapped[float | None] = mapped_column(Float)
     state: Mapped[NodeState] = mapped_column(_enum(NodeState, "detection_state"))
@@ -252,6 +254,11 @@ class EventRow(Base):
     severity: Mapped[Severity] = mapped_column(_enum(Severity, "severity"))
     payload: Mapped[dict[str, Any]]
     created_at: Mapped[datetime]
+    # An operator's handling of the alert (API: acknowledge, resolve); delivery is tracked per sink.
+    acknowledged_at: Mapped[datetime | None]
+    acknowledged_by: Mapped[str | None] = mapped_column(String(128))
+    resolved_at: Mapped[datetime | None]
+    resolved_by: Mapped[str | None] = mapped_column(String(128))
 
     deliveries: Mapped[list[DeliveryRow]] = relationship(back_populates="event", order_by="DeliveryRow.id")
 

@@ -39,7 +39,7 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
             node_id=info.node_id,
             first_seen_at=seen_at,
             error_counters={},
-            state=NodeState.NO_VALID_BASELINE,
+            state=NodeState.COMMISSIONING,
         )
         session.add(node)
     node.port_url = info.port_url

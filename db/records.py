@@ -83,7 +83,7 @@ class DetectionInput:
     """The verdict on a monitor measurement; the location is None when nothing stands out."""
 
     peak_di: float
-    threshold: float
+    threshold: float | None  # None while the node's threshold is being calibrated
     state: NodeState
     axial_mm: float | None = None
     angle_deg: float | None = None

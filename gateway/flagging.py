@@ -5,25 +5,19 @@ States: ``ok -> suspected -> damage`` and back. The first exceedance makes a nod
 below the threshold while suspected returns it to ``ok``; from ``damage`` it takes M
 consecutive readings below to return to ``ok``. ``no_valid_baseline`` is entered when the
 imaging abstains (no baseline matches the current conditions): monitoring is blind, not
-healthy, and the counters restart when valid readings return.
+healthy, and the counters restart when valid readings return. ``commissioning`` and
+``calibrating`` come before any flagging: the node has no baseline, or no threshold yet.
 """
 from __future__ import annotations
 
 import math
 import statistics
 from dataclasses import dataclass, replace
-from enum import StrEnum
 
+from db.models import NodeState
 from gateway.config import ThresholdSettings, false_alarm_k
 
-
-class NodeState(StrEnum):
-    COMMISSIONING = "commissioning"  # collecting baselines
-    CALIBRATING = "calibrating"  # collecting baseline-condition DI peaks for the threshold
-    OK = "ok"
-    SUSPECTED = "suspected"
-    DAMAGE = "damage"
-    NO_VALID_BASELINE = "no_valid_baseline"
+FLAGGING_STATES = (NodeState.OK, NodeState.SUSPECTED, NodeState.DAMAGE)
 
 
 @dataclass(frozen=True)
@@ -40,7 +34,7 @@ def step(prev: FlagState, peak_di: float | None, threshold: float, hysteresis_co
     m = hysteresis_count
     if peak_di is None:
         return FlagState(NodeState.NO_VALID_BASELINE)
-    state = prev.state if prev.state != NodeState.NO_VALID_BASELINE else NodeState.OK
+    state = prev.state if prev.state in FLAGGING_STATES else NodeState.OK
     if peak_di > threshold:
         above = prev.above + 1 if state in (NodeState.SUSPECTED, NodeState.DAMAGE) else 1
         if state == NodeState.DAMAGE or above >= m:

@@ -24,7 +24,7 @@ from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, 
 from db.nodes import get_node, record_node_health, upsert_node
 from db.records import DetectionInput, DiMapInput, EventInput, MapGrid, NodeInfo, StateChangeInput
 from gateway.config import NodeSettings
-from gateway.flagging import FlagState, step, threshold_for
+from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
 from gateway.logs import node_context
 from gateway.measurement_build import NodeGeometryView, effective_geometry, measurement_from_codes
 from gateway.node_client import (
@@ -113,6 +113,7 @@ class NodeWorker:
         self._baseline_cache: tuple[int, Measurement] | None = None
         self._threshold_cache: tuple[int, float | None] | None = None
         self._flag_loaded = False
+        self._n_baselines = 0
         self.thread = threading.Thread(target=self.run, name=f"node-{settings.id}", daemon=True)
 
     @property
@@ -236,6 +237,7 @@ class NodeWorker:
                 )
             )
         commissioning = baseline_row is None or n_baselines < self.settings.commissioning_count
+        self._n_baselines = n_baselines
         acq = conn.client.acquire(baseline=commissioning)
         transfer = conn.client.read_traces(acq.measurement_id)
         current = measurement_from_codes(
@@ -262,7 +264,12 @@ class NodeWorker:
         return self._store_monitor(conn, status, acq, transfer, current, baseline_row.measurement_id, node_errors)
 
     def _store_baseline(self, acq, transfer, current, activate: bool, node_errors) -> CycleOutcome:
+        """A commissioning measurement: stored as a baseline; the first one becomes the active baseline."""
+        done = self._n_baselines + 1 >= self.settings.commissioning_count
+        after = NodeState.CALIBRATING if self.settings.threshold.mode == "calibrated" else NodeState.OK
         with self.db.write() as session:
+            prev_state = get_node(session, self.settings.id).state
+            new_state = after if done else NodeState.COMMISSIONING
             row = store_measurement(
                 session,
                 self.settings.id,
@@ -277,15 +284,16 @@ class NodeWorker:
                 excitation_hz=current.excitation_hz,
                 cycles=current.cycles,
                 temperature_c=_finite_or_none(transfer.temperature_c),
+                state_change=StateChangeInput(prev_state, new_state) if new_state != prev_state else None,
             )
             if activate:
                 set_active_baseline(
                     session, self.settings.id, row.id, created_by="gateway", reason="commissioning: first measurement"
                 )
             record_node_health(session, self.settings.id, online=True, error_counters=node_errors)
-            state = get_node(session, self.settings.id).state
             measurement_id = row.id
-        return CycleOutcome(measurement_id, MeasurementKind.BASELINE, state)
+        self.flag = FlagState()
+        return CycleOutcome(measurement_id, MeasurementKind.BASELINE, new_state)
 
     def _baseline(self, measurement_id: int) -> Measurement:
         if self._baseline_cache is None or self._baseline_cache[0] != measurement_id:
@@ -352,7 +360,7 @@ class NodeWorker:
                 below += 1
             else:
                 break
-        state = node_state if node_state in (NodeState.OK, NodeState.SUSPECTED, NodeState.DAMAGE) else NodeState.OK
+        state = node_state if node_state in FLAGGING_STATES else NodeState.OK
         self.flag = FlagState(state, above=above, below=below if state == NodeState.DAMAGE else 0)
         self._flag_loaded = True
 
@@ -392,7 +400,7 @@ class NodeWorker:
             threshold = self._threshold(session, baseline_id)
             prev_state = node.state
             if threshold is None:
-                new_flag, new_state = self.flag, NodeState.OK if prev_state == NodeState.NO_VALID_BASELINE else prev_state
+                new_flag, new_state = FlagState(), NodeState.CALIBRATING
             else:
                 new_flag = step(self.flag, result.peak_di, threshold, self.settings.threshold.hysteresis_count)
                 new_state = new_flag.state

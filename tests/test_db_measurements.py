@@ -42,7 +42,7 @@ from db_fixtures import (  # noqa: F401
     store_sample,
 )
 
-TO_DAMAGE = StateChangeInput(NodeState.NO_VALID_BASELINE, NodeState.DAMAGE)
+TO_DAMAGE = StateChangeInput(NodeState.COMMISSIONING, NodeState.DAMAGE)
 
 
 def _count(session, model) -> int:
@@ -133,13 +133,13 @@ def test_a_failure_part_way_stores_nothing_of_the_measurement(any_db):
     with any_db.session() as session:
         for model in (MeasurementRow, DiMapRow, DetectionRow, StateChangeRow, EventRow):
             assert _count(session, model) == 0, model.__tablename__
-        assert get_node(session, "node-a").state == NodeState.NO_VALID_BASELINE
+        assert get_node(session, "node-a").state == NodeState.COMMISSIONING
 
 
 def test_state_change_must_start_from_the_current_state(any_db):
     with any_db.write() as session:
         upsert_node(session, node_info(), seen_at=T0)
-    with pytest.raises(StateConflict, match="no_valid_baseline"):
+    with pytest.raises(StateConflict, match="commissioning"):
         with any_db.write() as session:
             store_sample(session, state_change=StateChangeInput(NodeState.OK, NodeState.DAMAGE))
     with any_db.session() as session:
@@ -239,7 +239,7 @@ def test_latest_detection_and_state_history(any_db):
         history = state_history(session, "node-a")
         assert [(c.from_state, c.to_state) for c in history.items] == [
             (NodeState.DAMAGE, NodeState.OK),
-            (NodeState.NO_VALID_BASELINE, NodeState.DAMAGE),
+            (NodeState.COMMISSIONING, NodeState.DAMAGE),
         ]
         assert history.items[0].measurement_id == last_id
 

@@ -22,7 +22,7 @@ depends_on: str | Sequence[str] | None = None
 BIG_ID = sa.BigInteger().with_variant(sa.Integer(), "sqlite")
 UTC = sa.DateTime(timezone=True)
 JSON = sa.JSON().with_variant(postgresql.JSONB(), "postgresql")
-NODE_STATES = ("ok", "suspected", "damage", "no_valid_baseline")
+NODE_STATES = ("commissioning", "calibrating", "ok", "suspected", "damage", "no_valid_baseline")
 
 
 def _one_of(column: str, values: Sequence[str], name: str) -> sa.CheckConstraint:
@@ -140,7 +140,7 @@ def upgrade() -> None:
         sa.Column("measurement_id", BIG_ID, nullable=False),
         sa.Column("node_id", sa.String(64), nullable=False),
         sa.Column("peak_di", sa.Float(), nullable=False),
-        sa.Column("threshold", sa.Float(), nullable=False),
+        sa.Column("threshold", sa.Float(), nullable=True),
         sa.Column("axial_mm", sa.Float(), nullable=True),
         sa.Column("angle_deg", sa.Float(), nullable=True),
         sa.Column("state", sa.String(32), nullable=False),
@@ -180,6 +180,10 @@ def upgrade() -> None:
         sa.Column("severity", sa.String(32), nullable=False),
         sa.Column("payload", JSON, nullable=False),
         sa.Column("created_at", UTC, nullable=False),
+        sa.Column("acknowledged_at", UTC, nullable=True),
+        sa.Column("acknowledged_by", sa.String(128), nullable=True),
+        sa.Column("resolved_at", UTC, nullable=True),
+        sa.Column("resolved_by", sa.String(128), nullable=True),
         sa.PrimaryKeyConstraint("id", name=op.f("pk_events")),
         sa.ForeignKeyConstraint(["node_id"], ["nodes.node_id"], name=op.f("fk_events_node_id_nodes")),
         _one_of("severity", ("info", "warning", "critical"), "ck_events_severity"),
