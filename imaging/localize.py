@@ -48,3 +48,63 @@ def locate_peak(di_map: DIMap) -> Estimate:
     """The strongest pixel of the map, refined below the grid spacing."""
     i, j = np.unravel_index(int(np.argmax(di_map.pixels)), di_map.pixels.shape)
     return refine_peak(di_map, int(i), int(j))
+
+
+@dataclass(frozen=True)
+class Confidence:
+    """How much to trust a peak: ``peak_ratio`` = second-highest local peak (outside ``exclusion_mm``)
+    over the highest, the -3 dB widths of the main peak, and ``score`` = 1 - peak_ratio in [0, 1]."""
+
+    peak_ratio: float
+    width_axial_mm: float
+    width_angle_deg: float
+    score: float
+
+    def as_dict(self) -> dict:
+        return {
+            "score": self.score,
+            "peak_ratio": self.peak_ratio,
+            "width_axial_mm": self.width_axial_mm,
+            "width_angle_deg": self.width_angle_deg,
+        }
+
+
+def _half_power_width(profile: np.ndarray, k: int, step: float, wraps: bool) -> float:
+    """Width (in units of ``step``) of the contiguous run around k above profile[k] / sqrt(2)."""
+    level = profile[k] / np.sqrt(2.0)
+    n = profile.size
+    count = 1
+    for direction in (-1, 1):
+        for step_i in range(1, n):  # bounded by the profile length
+            idx = k + direction * step_i
+            if wraps:
+                idx %= n
+            elif not 0 <= idx < n:
+                break
+            if profile[idx] < level or count >= n:
+                break
+            count += 1
+    return float(count * step)
+
+
+def exclusion_mask(grid, axial_mm: float, angle_deg: float, radius_mm: float, circumference_mm: float) -> np.ndarray:
+    """Pixels within ``radius_mm`` (surface distance, wrap-aware) of a point: True inside."""
+    dz = grid.axial_mm[:, None] - axial_mm
+    diff = np.mod(grid.angle_deg[None, :] - angle_deg, 360.0)
+    arc = np.minimum(diff, 360.0 - diff) * circumference_mm / 360.0
+    return np.hypot(dz, arc) <= radius_mm
+
+
+def peak_confidence(di_map: DIMap, estimate: Estimate, *, circumference_mm: float, exclusion_mm: float = 50.0) -> Confidence:
+    """Confidence of ``estimate`` on ``di_map``: competing-peak ratio and main-lobe widths."""
+    px, grid = di_map.pixels, di_map.grid
+    i = int(np.clip(round((estimate.axial_mm - grid.axial_start_mm) / grid.axial_step_mm), 0, grid.axial_count - 1))
+    j = int(round((estimate.angle_deg - grid.angle_start_deg) / grid.angle_step_deg))
+    j = j % grid.angle_count if grid.wraps_in_angle else int(np.clip(j, 0, grid.angle_count - 1))
+    peak = float(px[i, j])
+    outside = ~exclusion_mask(grid, estimate.axial_mm, estimate.angle_deg, exclusion_mm, circumference_mm)
+    second = float(px[outside].max()) if outside.any() else 0.0
+    ratio = float(np.clip(second / peak, 0.0, 1.0)) if peak > 0 else 1.0
+    width_axial = _half_power_width(px[:, j], i, grid.axial_step_mm, False)
+    width_angle = _half_power_width(px[i, :], j, grid.angle_step_deg, grid.wraps_in_angle)
+    return Confidence(ratio, width_axial, width_angle, 1.0 - ratio)
