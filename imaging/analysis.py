@@ -1,41 +1,48 @@
-"""One baseline/current comparison end to end: DI map, defect estimate, the JSON summary."""
+"""One baseline/current comparison end to end: DI map, defect estimates, the JSON summary.
+
+A thin front to ``imaging.pipeline.assess`` for callers holding one explicit baseline (the
+CLI, the gateway): a library of one, never abstaining (the caller chose the baseline), on the
+full 1 mm x 1 deg grid unless told otherwise.
+"""
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, field
+import math
 
-from imaging.dimap import DIMap, compute_di_map
 from imaging.grid import Grid
-from imaging.localize import Estimate, locate_peak
 from imaging.measurement import Measurement
+from imaging.pipeline import AssessSettings, Assessment
+
+Analysis = Assessment  # the result type; kept under its old name for existing callers
 
 
-@dataclass(frozen=True)
-class Analysis:
-    di_map: DIMap
-    defects: list[Estimate]
-    elapsed_ms: float
-    extra: dict = field(default_factory=dict)
+def analyze(
+    baseline: Measurement,
+    current: Measurement,
+    grid: Grid | None = None,
+    *,
+    method: str = "multipath",
+    feature: str = "analytic",
+    threshold: float | None = None,
+    max_defects: int = 3,
+    compensate: bool = True,
+    wall_mm: float | None = None,
+) -> Assessment:
+    """Image ``current`` against ``baseline`` (default: the all-paths coherent method) and find defects.
 
-    @property
-    def peak_di(self) -> float:
-        return self.di_map.peak_di
+    ``defects`` lists only what crosses the detection threshold (strongest first); ``peak`` and
+    ``peak_di`` are always there. ``method="paper"`` is Algorithm 1 (DI normalised by the
+    direct arrival's own window energy).
+    """
+    from imaging.pipeline import assess
 
-    def as_json(self) -> dict:
-        return {
-            "peak_di": self.peak_di,
-            "defects": [d.as_dict() for d in self.defects],
-            "grid": self.di_map.grid.spec(),
-            "method": self.di_map.method,
-            "window_samples": self.di_map.window_samples,
-            "elapsed_ms": self.elapsed_ms,
-            **self.extra,
-        }
-
-
-def analyze(baseline: Measurement, current: Measurement, grid: Grid | None = None) -> Analysis:
-    """Image ``current`` against ``baseline`` and estimate the defect position (strongest first)."""
-    start = time.perf_counter()
-    di_map = compute_di_map(baseline, current, grid)
-    defects = [locate_peak(di_map)]
-    return Analysis(di_map, defects, (time.perf_counter() - start) * 1e3)
+    settings = AssessSettings(
+        method=method,  # type: ignore[arg-type]
+        feature=feature,  # type: ignore[arg-type]
+        compensate=compensate,
+        max_residual=math.inf,
+        threshold=threshold,
+        max_defects=max_defects,
+        grid=grid or Grid.default(current.tx_rx_distance_mm),
+        wall_mm=wall_mm,
+    )
+    return assess(current, [baseline], settings)

@@ -1,18 +1,22 @@
 """The all-paths DI map: delay-and-sum of a residual feature along every modelled scattering path.
 
-Real features (envelope, squared):
+Real features (envelope, squared), an incoherent sum:
     DI(pixel) = sum_m sum_p w_mp^q F_m[k_mp] / sqrt(sum_m sum_p w_mp^(2q))
-Complex features (analytic), coherent within each path family f (imaging/paths.py):
-    DI(pixel) = sqrt(sum_f |sum_{m, p in f} w_mp A_m[k_mp]|^2) / sqrt(sum_m sum_p w_mp^2)
+Complex features (analytic), coherent within each group g of paths (a path family and one way
+round the pipe, imaging/paths.py ``coherence_groups``), groups added in power:
+    DI(pixel) = sqrt( sum_g |sum_{m, p in g} w_mp A_m[k_mp]|^2 / sum_{m, p in g} w_mp^2 )
 
 over healthy receivers m and paths p, where k_mp = round((L_mp / c - t0) fs) is the sample at
 which path p's burst starts, F/A the normalised feature (imaging/features.py), w the path's
-expected amplitude and q = 1 for an amplitude feature, 2 for an energy feature. That is the
-matched-filter statistic of a point scatterer at the pixel (with one unknown complex
-amplitude per path family in the coherent form: the scattered phase of a defect is the same
-for every receiver seen through the same incident and outgoing route, but differs between
-forward and back scattering). Noise alone gives a map of about the same spread everywhere,
-so the arg-max is the position estimate and its value can be compared with a fixed threshold.
+expected amplitude and q = 1 for an amplitude feature, 2 for an energy feature. Both are the
+matched-filter (generalised likelihood ratio) statistic of a point scatterer at the pixel; the
+coherent form has one unknown complex amplitude per group, because a defect's scattered phase
+is nearly the same for every receiver reached by the same route but differs between forward,
+back and sideways scattering, and a route the data lack (e.g. an end that does not reflect)
+then costs nothing at the true position. Noise alone gives a map of about the same spread
+everywhere, so the arg-max is the position estimate and its value can be compared with a
+fixed threshold. With ``normalise="amplitude"`` the map is the least-squares scatterer
+strength instead: DI / sqrt(sum of all w^(2q)) (coherent) or the weighted sum / sum w^(2q).
 Samples outside the record contribute nothing.
 
 Fast path: for each receiver the (sample index, weight) of every path and pixel is computed
@@ -31,7 +35,7 @@ from imaging.dimap import DIMap, check_compatible, default_window_samples
 from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.measurement import Measurement
-from imaging.paths import PathModel, scalar_paths, scatter_paths
+from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
@@ -42,19 +46,19 @@ class MultipathError(ValueError):
     """Bad arguments to the all-paths imaging (shapes, masks, normalisation)."""
 
 
-def _norm(weight_sq: np.ndarray, weighted: np.ndarray, normalise: str) -> np.ndarray:
-    safe = np.where(weight_sq > 0, weight_sq, 1.0)
-    denom = np.sqrt(safe) if normalise == "snr" else safe
-    return np.where(weight_sq > 0, weighted / denom, 0.0)
+def _safe_divide(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
-def _combine(families: np.ndarray, weight_sq: np.ndarray, normalise: str) -> np.ndarray:
-    """Real: the weighted sum; complex: the root of the summed power of each family's coherent sum."""
-    if np.iscomplexobj(families):
-        weighted = np.sqrt(np.sum(families.real**2 + families.imag**2, axis=0))
-    else:
-        weighted = np.sum(families, axis=0)
-    return _norm(weight_sq, weighted, normalise)
+def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str) -> np.ndarray:
+    """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring)."""
+    total_sq = np.sum(weight_sq, axis=0)
+    if np.iscomplexobj(groups):
+        power = _safe_divide(groups.real**2 + groups.imag**2, weight_sq)
+        snr = np.sqrt(np.sum(power, axis=0))
+        return snr if normalise == "snr" else _safe_divide(snr, np.sqrt(total_sq))
+    weighted = np.sum(groups, axis=0)
+    return _safe_divide(weighted, np.sqrt(total_sq) if normalise == "snr" else total_sq)
 
 
 @lru_cache(maxsize=32)
@@ -68,14 +72,15 @@ def _tables(
     n_samples: int,
     power: int,
 ) -> tuple[tuple[tuple[int, np.ndarray, np.ndarray], ...], np.ndarray]:
-    """Per path: (family, sample index int32 [n_pixels], weight**power float32 [n_pixels]); and sum of weight**(2 power).
+    """Per path: (group, sample index int32 [n_pixels], weight**power float32 [n_pixels]); and per group
+    the sum of weight**(2 power) over its in-record paths, [n_groups, n_pixels].
 
     Out-of-record samples index ``n_samples``, a zero appended to the feature. Paths that
     never land inside the record are dropped.
     """
     c_mm_s = velocity_m_s * MM_PER_M
     rel = grid.angle_deg[None, :] - rx_angle_deg
-    tables, weight_sq = [], np.zeros(grid.shape[0] * grid.shape[1])
+    tables, weight_sq = [], np.zeros((coherence_groups(model), grid.shape[0] * grid.shape[1]))
     for family, length, weight in scatter_paths(model, grid.axial_mm[:, None], rel):
         k = np.floor((length.ravel() / c_mm_s - t0_s) * fs_hz + 0.5)
         inside = (k >= 0) & (k < n_samples)
@@ -86,7 +91,7 @@ def _tables(
         idx.setflags(write=False)
         w.setflags(write=False)
         tables.append((family, idx, w))
-        weight_sq += np.square(w, dtype=np.float64)
+        weight_sq[family] += np.where(inside, np.square(w, dtype=np.float64), 0.0)
     weight_sq.setflags(write=False)
     return tuple(tables), weight_sq
 
@@ -135,11 +140,11 @@ def multipath_pixels(
         raise MultipathError("rx_mask must have one entry per receiver")
     if normalise not in NORMALISATIONS:
         raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
-    n_fam = len(model.families())
+    n_fam = coherence_groups(model)
     padded = np.zeros((n_rx, n + 1), dtype=single)
     padded[:, :n] = feature
     total = np.zeros((n_fam,) + grid.shape, dtype=double)
-    total_sq = np.zeros(grid.shape)
+    total_sq = np.zeros((n_fam,) + grid.shape)
     acc = np.empty((n_fam, grid.shape[0] * grid.shape[1]), dtype=single)
     tmp = np.empty(acc.shape[1], dtype=single)
     for m, (angle, roll) in enumerate(_receiver_plan(grid, rx_angles_deg)):
@@ -152,7 +157,7 @@ def multipath_pixels(
             tmp *= w
             acc[family] += tmp
         total += np.roll(acc.reshape((n_fam,) + grid.shape), roll, axis=2)
-        total_sq += np.roll(weight_sq.reshape(grid.shape), roll, axis=1)
+        total_sq += np.roll(weight_sq.reshape((n_fam,) + grid.shape), roll, axis=2)
     return _combine(total, total_sq, normalise)
 
 
@@ -175,12 +180,12 @@ def literal_multipath_pixels(
     n_rx, n = feature.shape
     mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
     c_mm_s = velocity_m_s * MM_PER_M
-    n_fam = len(model.families())
+    n_fam = coherence_groups(model)
     out = np.zeros(grid.shape)
     for i, z in enumerate(grid.axial_mm):
         for j, theta in enumerate(grid.angle_deg):
             sums = [0j] * n_fam
-            weight_sq = 0.0
+            weight_sq = [0.0] * n_fam
             for m in range(n_rx):
                 if not mask[m]:
                     continue
@@ -189,10 +194,16 @@ def literal_multipath_pixels(
                     if not 0 <= k < n:
                         continue
                     sums[family] += w**power * complex(feature[m, k])
-                    weight_sq += w ** (2 * power)
-            if weight_sq > 0:
-                weighted = math.sqrt(sum(abs(s) ** 2 for s in sums)) if coherent else sum(s.real for s in sums)
-                out[i, j] = weighted / (math.sqrt(weight_sq) if normalise == "snr" else weight_sq)
+                    weight_sq[family] += w ** (2 * power)
+            total_sq = sum(weight_sq)
+            if total_sq <= 0:
+                continue
+            if coherent:
+                snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq) if q > 0))
+                out[i, j] = snr if normalise == "snr" else snr / math.sqrt(total_sq)
+            else:
+                weighted = sum(s.real for s in sums)
+                out[i, j] = weighted / (math.sqrt(total_sq) if normalise == "snr" else total_sq)
     return out
 
 

@@ -94,6 +94,16 @@ class PathModel:
         return tuple(out)
 
 
+def coherence_groups(model: PathModel) -> int:
+    """Number of groups summed coherently: one per path family and way round the pipe.
+
+    A defect's scattered phase depends on the direction it radiates in (forward, back, or
+    round the pipe one way or the other), so only paths leaving it in the same kind of
+    direction are added with their phase; the groups are then added in power.
+    """
+    return len(model.families()) * model.wraps
+
+
 def signed_arc_mm(rel_angle_deg: np.ndarray, circumference_mm: float) -> np.ndarray:
     """Signed circumferential offset in (-C/2, C/2] for an angle difference in degrees."""
     wrapped = np.mod(np.asarray(rel_angle_deg, dtype=np.float64) + 180.0, 360.0) - 180.0
@@ -121,10 +131,10 @@ def path_weight(factor: float, dz_mm: np.ndarray, r_mm: np.ndarray, model: PathM
 def scatter_paths(
     model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray
 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(family index, length_mm, weight) of every modelled path, broadcast over axial_mm x rel_angle_deg.
+    """(coherence group, length_mm, weight) of every modelled path, broadcast over axial_mm x rel_angle_deg.
 
-    ``rel_angle_deg`` is the pixel angle minus the receiver angle; the family index points
-    into ``model.families()``.
+    ``rel_angle_deg`` is the pixel angle minus the receiver angle. The group is
+    ``family_index * wraps + wrap`` (see ``coherence_groups``).
     """
     z = np.asarray(axial_mm, dtype=np.float64)
     arc = signed_arc_mm(rel_angle_deg, model.circumference_mm)
@@ -132,10 +142,10 @@ def scatter_paths(
     for f, fam in enumerate(model.families()):
         incident = np.abs(fam.in_offset_mm + fam.in_sign * z)
         dz = fam.rx_image_mm - z
-        for leg in wrap_offsets_mm(arc, model.circumference_mm, model.wraps):
+        for wrap, leg in enumerate(wrap_offsets_mm(arc, model.circumference_mm, model.wraps)):
             r = np.hypot(dz, leg)
             length, weight = np.broadcast_arrays(incident + r, path_weight(fam.factor, dz, r, model))
-            paths.append((f, length, weight))
+            paths.append((f * model.wraps + wrap, length, weight))
     return paths
 
 
@@ -151,10 +161,10 @@ def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float) -> list[tu
     for f, fam in enumerate(model.families()):
         incident = abs(fam.in_offset_mm + fam.in_sign * z_mm)
         dz = fam.rx_image_mm - z_mm
-        for leg in legs:
+        for wrap, leg in enumerate(legs):
             r = math.hypot(dz, leg)
             w = fam.factor * math.sqrt(lam / max(r, 0.5 * lam))
             if model.polarization and r > 0:
                 w *= abs(dz) / r
-            out.append((f, incident + r, w))
+            out.append((f * model.wraps + wrap, incident + r, w))
     return out

@@ -12,10 +12,20 @@ from pipesentry.errors import fail
 
 
 def format_summary(result) -> str:
-    lines = [f"peak DI {result.peak_di:.6g} ({result.di_map.method}, {result.elapsed_ms:.1f} ms)"]
+    lines = [
+        f"peak DI {result.peak_di:.6g} ({result.method}, threshold {result.threshold:.4g}, {result.elapsed_ms:.1f} ms)"
+    ]
+    if result.baseline is not None and result.baseline.stretch:
+        lines.append(f"baseline stretched by {result.baseline.stretch * 100:+.4f} % (temperature compensation)")
+    for fault in result.sensor_faults:
+        lines.append(f"sensor fault: receiver {fault.rx_index} at {fault.rx_angle_deg:.1f} deg ({fault.kind}), left out")
+    if not result.defects:
+        p = result.peak
+        lines.append(f"no defect detected (strongest point: axial {p.axial_mm:.1f} mm, angle {p.angle_deg:.1f} deg)")
     for k, d in enumerate(result.defects, 1):
         lines.append(
-            f"defect {k}: axial {d.axial_mm:.1f} mm from the Tx ring, angle {d.angle_deg:.1f} deg, DI {d.di:.6g}"
+            f"defect {k}: axial {d.axial_mm:.1f} mm from the Tx ring, angle {d.angle_deg:.1f} deg, DI {d.di:.6g}, "
+            f"severity {d.severity:.3g}, confidence {d.confidence.score:.2f}"
         )
     return "\n".join(lines)
 
@@ -25,24 +35,35 @@ def analyze(
     current: Annotated[Path, typer.Option(help="current measurement, .npz or .csv")],
     as_json: Annotated[bool, typer.Option("--json", help="print exactly one JSON object")] = False,
     png: Annotated[Optional[Path], typer.Option(help="write the DI-map heatmap to this PNG file")] = None,
+    method: Annotated[str, typer.Option(help="multipath (all paths, default) or paper (Algorithm 1)")] = "multipath",
+    feature: Annotated[str, typer.Option(help="multipath feature: analytic (default), envelope or squared")] = "analytic",
+    threshold: Annotated[Optional[float], typer.Option(help="detection threshold (default: documented per method)")] = None,
+    max_defects: Annotated[int, typer.Option(help="report at most this many defects")] = 3,
+    wall_mm: Annotated[Optional[float], typer.Option(help="pipe wall thickness, for the mid-wall wrap length")] = None,
+    compensate: Annotated[bool, typer.Option(help="stretch the baseline to the current temperature")] = True,
 ) -> None:
-    """Image CURRENT against BASELINE and estimate the defect position."""
+    """Image CURRENT against BASELINE and estimate the defect positions."""
     from imaging.analysis import analyze as run_analysis
     from imaging.dimap import BaselineMismatch
     from imaging.formats import load_measurement
     from imaging.measurement import MeasurementError
+    from imaging.multipath import MultipathError
+    from imaging.pipeline import SettingsError
 
     try:
         base = load_measurement(baseline)
         cur = load_measurement(current)
-        result = run_analysis(base, cur)
-    except (MeasurementError, BaselineMismatch) as exc:
+        result = run_analysis(
+            base, cur, method=method, feature=feature, threshold=threshold, max_defects=max_defects,
+            compensate=compensate, wall_mm=wall_mm,
+        )
+    except (MeasurementError, BaselineMismatch, SettingsError, MultipathError) as exc:
         fail(str(exc))
     if png is not None:
         from imaging.heatmap import heatmap_png
 
         try:
-            png.write_bytes(heatmap_png(result.di_map, result.defects))
+            png.write_bytes(heatmap_png(result.di_map, result.defects or [result.peak]))
         except OSError as exc:
             fail(f"cannot write {png}: {exc.strerror or exc}")
     if as_json:
