@@ -1,6 +1,16 @@
-"""`pipesentry demo`: the README's main command."""
+"""`pipesentry demo`: the README's main command — simulated nodes, the gateway, SQLite, damage arising.
+
+Starts the mock nodes on pseudo-terminals and the gateway daemon as real processes, then
+follows the database and prints progress: measurements, state changes, and the estimated
+defect coordinates against the scenario's truth. Stops after ``--duration-s`` or on Ctrl-C.
+"""
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -9,32 +19,108 @@ import typer
 from pipesentry.errors import fail
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+DEMO_SCENARIO = DATA_DIR / "demo_scenario.toml"
+
+
+class Child:
+    """A child process with its output in a log file, in its own session (Ctrl-C reaches only us)."""
+
+    def __init__(self, name: str, args: list[str], log_dir: Path) -> None:
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        self._log = self.log_path.open("wb")
+        self.popen = subprocess.Popen(
+            args, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True
+        )
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        if self.alive():
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(timeout_s)
+        self._log.close()
+
+
+def gateway_toml(db_path: Path, link_dir: Path, node_ids: list[str], interval_s: float) -> str:
+    lines = [f'[database]\nurl = "sqlite:///{db_path}"\n', "[logging]\njson = false\n"]
+    for node_id in node_ids:
+        lines.append(
+            f'[[nodes]]\nid = "{node_id}"\nurl = "{link_dir / node_id}"\ninterval_s = {interval_s}\n'
+            "[nodes.threshold]\ncalibration_count = 8\nhysteresis_count = 2\nfalse_alarm_rate = 0.001\n"
+        )
+    return "\n".join(lines)
+
+
+def _wait_for(predicate, timeout_s: float, what: str, children: list[Child]) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        for child in children:
+            if not child.alive():
+                fail(f"{child.name} exited while waiting for {what}; see {child.log_path}")
+        time.sleep(0.1)
+    fail(f"timed out waiting for {what}")
 
 
 def demo(
-    out_dir: Annotated[Path, typer.Option(help="where to write the heatmap")] = Path("out"),
+    duration_s: Annotated[float, typer.Option(help="stop after this many seconds")] = 150.0,
+    interval_s: Annotated[float, typer.Option(help="seconds between a node's measurements")] = 2.0,
+    out_dir: Annotated[Path, typer.Option(help="where the database, config and logs go")] = Path("out/demo"),
+    scenario: Annotated[Path, typer.Option(help="mock-node scenario (TOML)")] = DEMO_SCENARIO,
 ) -> None:
-    """Analyse the bundled example measurements (a notch 200 mm from the Tx ring at 90 deg)."""
-    from imaging.analysis import analyze as run_analysis
-    from imaging.formats import load_measurement
-    from imaging.heatmap import heatmap_png
-    from imaging.timing import surface_distance_mm
+    """Run simulated nodes and the gateway on SQLite, and show damage being flagged as it arises."""
+    from mocknode.scenario import ScenarioError, load_scenario
 
-    base = load_measurement(DATA_DIR / "example_baseline.npz")
-    cur = load_measurement(DATA_DIR / "example_current.npz")
-    result = run_analysis(base, cur)
-    truth = (200.0, 90.0)
+    from pipesentry.demo_progress import Progress
+
+    try:
+        scn = load_scenario(scenario)
+    except ScenarioError as exc:
+        fail(str(exc))
+    node_ids = [n.node_id for n in scn.nodes]
+    truths = {n.node_id: [(d.axial_mm, d.angle_deg, d.appears_at_s) for d in n.defects] for n in scn.nodes}
+    out_dir = out_dir.resolve()
+    link_dir = out_dir / "ports"
+    db_path = out_dir / "pipesentry.db"
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        png = out_dir / "demo-dimap.png"
-        png.write_bytes(heatmap_png(result.di_map, result.defects, truth=[truth]))
+        for stale in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
+            stale.unlink(missing_ok=True)
+        config = out_dir / "gateway.toml"
+        config.write_text(gateway_toml(db_path, link_dir, node_ids, interval_s))
     except OSError as exc:
-        fail(f"cannot write the heatmap into {out_dir}: {exc.strerror or exc}")
-    est = result.defects[0]
-    err = surface_distance_mm(est.axial_mm, est.angle_deg, *truth, base.circumference_mm)
-    typer.echo(f"example: notch at {truth[0]:.0f} mm, {truth[1]:.0f} deg; {base.n_rx} receivers, {base.n_samples} samples")
-    typer.echo(
-        f"estimate: {est.axial_mm:.1f} mm, {est.angle_deg:.1f} deg (error {err:.1f} mm), "
-        f"peak DI {result.peak_di:.4g}, {result.elapsed_ms:.1f} ms"
-    )
-    typer.echo(f"heatmap: {png.resolve()}")
+        fail(f"cannot prepare {out_dir}: {exc.strerror or exc}")
+
+    exe = [sys.executable, "-m", "pipesentry"]
+    children: list[Child] = []
+    started = time.monotonic()
+    try:
+        children.append(Child("mock-node", exe + ["mock-node", "--scenario", str(scenario), "--link-dir", str(link_dir)], out_dir))
+        _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children)
+        typer.echo(f"mock nodes up: {', '.join(f'{n} -> {os.path.realpath(link_dir / n)}' for n in node_ids)}")
+        children.append(Child("gateway", exe + ["gateway", "--config", str(config)], out_dir))
+        _wait_for(db_path.exists, 30, "the gateway's database", children)
+        typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
+        typer.echo(f"running for {duration_s:g} s (Ctrl-C stops earlier)\n")
+        progress = Progress(f"sqlite:///{db_path}", truths, echo=typer.echo)
+        while time.monotonic() - started < duration_s:
+            for child in children:
+                if not child.alive():
+                    fail(f"{child.name} exited unexpectedly; see {child.log_path}")
+            progress.poll(elapsed_s=time.monotonic() - started)
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        typer.echo("\ninterrupted")
+    finally:
+        for child in reversed(children):
+            child.stop()
+    typer.echo("stopped cleanly")
+    if "progress" in locals():
+        progress.summary()
