@@ -1,0 +1,180 @@
+"""Gateway pieces in-process: config validation, the watchdog's stall detection, JSON logs, surviving a full disk."""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+from sqlalchemy import event, func, select
+
+from db.database import open_database
+from db.models import MeasurementRow
+from gateway.config import ConfigError, NodeSettings, load_settings
+from gateway.logs import node_context, setup_logging
+from gateway.watchdog import Heartbeats
+from gateway.worker import NodeWorker
+from mocknode.scenario import NodeScenario
+from mocknode.server import MockNodeServer
+
+from process_harness import wait_until
+
+GOOD = """
+[database]
+url = "sqlite:///{db}"
+[[nodes]]
+id = "a"
+url = "/dev/ttyUSB0"
+[[nodes]]
+id = "b"
+url = "socket://127.0.0.1:7001"
+interval_s = 30
+[nodes.threshold]
+mode = "absolute"
+absolute = 0.5
+"""
+
+
+def test_config_loads_with_defaults_and_per_node_overrides(tmp_path):
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db"))
+    s = load_settings(path)
+    assert [n.id for n in s.nodes] == ["a", "b"]
+    assert s.nodes[0].interval_s == 60.0 and s.nodes[0].threshold.mode == "calibrated"
+    assert s.nodes[1].threshold.absolute == 0.5 and s.nodes[1].baud == 230400
+
+
+def test_environment_overrides_the_file(tmp_path, monkeypatch):
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db"))
+    monkeypatch.setenv("PIPESENTRY_DATABASE__URL", "sqlite:////elsewhere.db")
+    monkeypatch.setenv("PIPESENTRY_LOGGING__LEVEL", "DEBUG")
+    s = load_settings(path)
+    assert s.database.url == "sqlite:////elsewhere.db" and s.logging.level == "DEBUG"
+
+
+@pytest.mark.parametrize(
+    "body, key",
+    [
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\ninterval_s = -1\n', "nodes.0.interval_s"),
+        ('[[nodes]]\nid = "a b"\nurl = "/dev/x"\n', "nodes.0.id"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\nbaudrate = 9600\n', "nodes.0.baudrate"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[nodes.threshold]\nmode = "absolute"\n', "nodes.0.threshold"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[[nodes]]\nid = "a"\nurl = "/dev/y"\n', "unique"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[[nodes]]\nid = "b"\nurl = "/dev/x"\n', "share a port"),
+        ("[database]\nurl = 'x'\n", "nodes"),
+        ("[[nodes]\n", "line 1"),
+    ],
+)
+def test_config_errors_name_the_offending_key(tmp_path, body, key):
+    path = tmp_path / "g.toml"
+    path.write_text(body)
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_settings(path)
+
+
+def test_gateway_refuses_a_bad_config_with_exit_2_and_one_line(tmp_path):
+    path = tmp_path / "g.toml"
+    path.write_text('[[nodes]]\nid = "a"\nurl = "/dev/x"\ninterval_s = 0\n')
+    proc = subprocess.run([sys.executable, "-m", "pipesentry", "gateway", "--config", str(path)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "nodes.0.interval_s" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "pipesentry.db").exists()  # nothing was started half-configured
+
+
+def test_check_validates_without_starting(tmp_path):
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db"))
+    proc = subprocess.run([sys.executable, "-m", "pipesentry", "gateway", "--config", str(path), "--check"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "2 node(s)" in proc.stdout
+    assert not (tmp_path / "x.db").exists()
+
+
+def test_watchdog_sees_a_worker_that_really_hangs():
+    beats = Heartbeats()
+    release = threading.Event()
+
+    def healthy():
+        for _ in range(200):
+            beats.beat("healthy")
+            if release.wait(0.01):
+                return
+
+    def hanging():
+        beats.beat("hung")
+        release.wait(10)  # stuck: no beat until released
+
+    threads = [threading.Thread(target=healthy), threading.Thread(target=hanging)]
+    for t in threads:
+        t.start()
+    try:
+        wait_until(lambda: beats.stalled({"healthy": 0.2, "hung": 0.2}) == ["hung"], 5, 0.02,
+                   what="the hung loop to be reported")
+    finally:
+        release.set()
+        for t in threads:
+            t.join(5)
+
+
+def test_json_logs_carry_the_node_id():
+    stream = io.StringIO()
+    setup_logging("INFO", json_lines=True, stream=stream)
+    try:
+        log = logging.getLogger("pipesentry.gateway")
+        with node_context("node-7"):
+            log.info("measurement %d stored", 12, extra={"measurement_id": 12})
+        log.info("daemon line")
+    finally:
+        logging.getLogger().handlers.clear()
+    first, second = (json.loads(line) for line in stream.getvalue().splitlines())
+    assert first["node"] == "node-7" and first["msg"] == "measurement 12 stored" and first["measurement_id"] == 12
+    assert second["node"] == "-"
+
+
+def test_worker_survives_a_full_disk_and_resumes_when_space_returns(tmp_path, caplog):
+    """A real SQLite file whose page budget runs out (PRAGMA max_page_count), then is raised again."""
+    db = open_database(f"sqlite:///{tmp_path / 'g.db'}")
+    budget = {"pages": None}
+
+    @event.listens_for(db.engine, "connect")
+    def limit_pages(dbapi_conn, _record):
+        if budget["pages"] is not None:
+            dbapi_conn.execute(f"PRAGMA max_page_count = {budget['pages']}")
+
+    def count():
+        with db.session() as s:
+            return s.scalar(select(func.count()).select_from(MeasurementRow))
+
+    scn = NodeScenario(node_id="full", seed=5)
+    with MockNodeServer([scn]) as server:
+        stop = threading.Event()
+        worker = NodeWorker(NodeSettings(id="full", url=server.urls["full"], interval_s=0.05, timeout_s=1.0),
+                            db, Heartbeats(), stop, backoff_max_s=0.2)
+        worker.thread.start()
+        try:
+            wait_until(lambda: count() >= 2, 60, what="two measurements")
+            pages = sqlite3.connect(tmp_path / "g.db").execute("PRAGMA page_count").fetchone()[0]
+            budget["pages"] = pages + 2  # far less than one measurement needs
+            db.engine.dispose()  # new connections get the budget
+            with caplog.at_level(logging.ERROR, logger="pipesentry.gateway"):
+                wait_until(lambda: "storage unavailable" in caplog.text, 60, what="a full-disk error")
+                stuck = count()
+                assert worker.thread.is_alive()
+            budget["pages"] = None
+            db.engine.dispose()
+            wait_until(lambda: count() >= stuck + 2, 60, what="writes to resume")
+        finally:
+            stop.set()
+            worker.thread.join(10)
+    con = sqlite3.connect(tmp_path / "g.db")
+    assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    con.close()
+    assert worker.counters.storage_errors >= 1
+    db.dispose()
