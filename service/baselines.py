@@ -1,0 +1,59 @@
+"""Operators' baseline decisions: create one from a measurement, (re)activate one; history is kept."""
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from db.baselines import baseline_history, set_active_baseline
+from db.clock import utc_now
+from db.errors import BaselineError, NotFound
+from db.measurements import get_measurement
+from db.models import BaselineRow
+from db.nodes import get_node
+from service import schemas
+
+
+def history(session: Session, node_id: str) -> list[schemas.Baseline]:
+    get_node(session, node_id)
+    return [schemas.Baseline.model_validate(b) for b in baseline_history(session, node_id)]
+
+
+def create(session: Session, node_id: str, request: schemas.BaselineCreate, *, who: str) -> schemas.Baseline:
+    """A baseline record for a measurement of this node, made active unless ``activate`` is false.
+
+    Call in a write transaction. Raises ``BaselineError`` for another node's or a pruned
+    measurement, ``NotFound`` for an unknown node or measurement.
+    """
+    if request.activate:
+        row = set_active_baseline(session, node_id, request.measurement_id, created_by=who, reason=request.reason)
+        return schemas.Baseline.model_validate(row)
+    get_node(session, node_id)
+    measurement = get_measurement(session, request.measurement_id)
+    if measurement.node_id != node_id:
+        raise BaselineError(f"measurement {measurement.id} belongs to node {measurement.node_id!r}, not {node_id!r}")
+    if measurement.traces_pruned_at is not None:
+        raise BaselineError(f"measurement {measurement.id} has no traces any more (pruned); it cannot be a baseline")
+    row = BaselineRow(
+        node_id=node_id,
+        measurement_id=measurement.id,
+        created_by=who,
+        created_at=utc_now(),
+        reason=request.reason,
+        active=False,
+        deactivated_at=None,
+    )
+    session.add(row)
+    session.flush()
+    return schemas.Baseline.model_validate(row)
+
+
+def activate(session: Session, node_id: str, baseline_id: int, reason: str, *, who: str) -> schemas.Baseline:
+    """Make an earlier baseline's measurement the active one again (a new history record)."""
+    earlier = session.scalars(
+        select(BaselineRow).where(BaselineRow.id == baseline_id, BaselineRow.node_id == node_id)
+    ).first()
+    if earlier is None:
+        get_node(session, node_id)
+        raise NotFound(f"node {node_id!r} has no baseline {baseline_id}")
+    row = set_active_baseline(session, node_id, earlier.measurement_id, created_by=who, reason=reason)
+    return schemas.Baseline.model_validate(row)

@@ -1,0 +1,103 @@
+"""Injected dependencies of the routes: the database, sessions, and the caller's API key and role."""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from db.api_keys import authenticate_api_key
+from db.database import Database
+from db.models import Role
+from service.database import DatabaseGate
+from service.problems import FORBIDDEN, UNAUTHORIZED, ApiProblem
+from service.settings import ApiSettings
+
+ROLE_RANK = {Role.VIEWER: 0, Role.OPERATOR: 1, Role.ADMIN: 2}
+MAX_TOKEN_CHARS = 256  # our tokens are ~47 characters; anything far longer is not one
+
+bearer_scheme = HTTPBearer(auto_error=False, description="`Authorization: Bearer <key>`")
+header_scheme = APIKeyHeader(name="X-API-Key", auto_error=False, description="`X-API-Key: <key>`")
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who is making the request: the API key's id, name (recorded as 'who') and role."""
+
+    key_id: int
+    name: str
+    role: Role
+
+    def allows(self, needed: Role) -> bool:
+        return ROLE_RANK[self.role] >= ROLE_RANK[needed]
+
+
+def get_settings(request: Request) -> ApiSettings:
+    return request.app.state.settings
+
+
+def get_database(request: Request) -> Database:
+    gate: DatabaseGate = request.app.state.database
+    return gate.get()
+
+
+DatabaseDep = Annotated[Database, Depends(get_database)]
+
+
+def read_session(database: DatabaseDep) -> Iterator[Session]:
+    """One read transaction per request (a consistent snapshot while the gateway writes)."""
+    with database.session() as session:
+        yield session
+
+
+ReadSession = Annotated[Session, Depends(read_session)]
+
+
+def write_session(database: DatabaseDep) -> Iterator[Session]:
+    """One write transaction per request: all of the change is committed, or none of it."""
+    with database.write() as session:
+        yield session
+
+
+WriteSession = Annotated[Session, Depends(write_session)]
+
+
+def presented_token(
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(bearer_scheme)],
+    header_key: Annotated[str | None, Security(header_scheme)],
+) -> str:
+    token = bearer.credentials if bearer is not None else header_key
+    if not token:
+        raise ApiProblem(UNAUTHORIZED, "send an API key as 'Authorization: Bearer <key>' or 'X-API-Key: <key>'",
+                         headers={"WWW-Authenticate": "Bearer"})
+    return token
+
+
+def current_caller(token: Annotated[str, Depends(presented_token)], session: ReadSession) -> Caller:
+    row = authenticate_api_key(session, token) if len(token) <= MAX_TOKEN_CHARS else None
+    if row is None:
+        raise ApiProblem(UNAUTHORIZED, "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"})
+    return Caller(key_id=row.id, name=row.name, role=row.role)
+
+
+def require(role: Role) -> Callable[[Caller], Caller]:
+    """A dependency that admits callers whose role is at least ``role``."""
+
+    def check(caller: Annotated[Caller, Depends(current_caller)]) -> Caller:
+        if not caller.allows(role):
+            raise ApiProblem(FORBIDDEN, f"needs the {role.value} role; this key is {caller.role.value}")
+        return caller
+
+    check.__name__ = f"require_{role.value}"
+    return check
+
+
+require_viewer = require(Role.VIEWER)
+require_operator = require(Role.OPERATOR)
+require_admin = require(Role.ADMIN)
+Viewer = Annotated[Caller, Depends(require_viewer)]
+Operator = Annotated[Caller, Depends(require_operator)]
+Admin = Annotated[Caller, Depends(require_admin)]

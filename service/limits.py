@@ -1,0 +1,41 @@
+"""Request body size limit (413 problem), enforced on Content-Length and on the bytes actually sent."""
+from __future__ import annotations
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.problems import PAYLOAD_TOO_LARGE, ApiProblem, problem_response
+
+
+class BodySizeLimit:
+    """Refuses bodies over ``max_bytes``: declared ones at once, chunked ones as they arrive."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers", ())).get(b"content-length")
+        if declared is not None:
+            try:
+                too_large = int(declared) > self.max_bytes
+            except ValueError:
+                too_large = False  # the server rejects a malformed Content-Length itself
+            if too_large:
+                response = problem_response(PAYLOAD_TOO_LARGE, f"the request body exceeds {self.max_bytes} bytes", None)
+                await response(scope, receive, send)
+                return
+        received = 0
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise ApiProblem(PAYLOAD_TOO_LARGE, f"the request body exceeds {self.max_bytes} bytes")
+            return message
+
+        await self.app(scope, limited_receive, send)

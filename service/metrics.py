@@ -1,0 +1,96 @@
+"""Prometheus metrics read from the database at scrape time (a custom collector, no global state)."""
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+from sqlalchemy import func, select
+
+from db.errors import StorageError
+from db.models import DeliveryRow, DeliveryStatus, MeasurementRow, NodeRow, NodeState
+from service.database import DatabaseGate
+
+log = logging.getLogger("pipesentry.api")
+
+
+class FleetCollector(Collector):
+    """Per node: up, state, DI peak, threshold, last seen/measured, serial counters; deliveries by status."""
+
+    def __init__(self, gate: DatabaseGate) -> None:
+        self.gate = gate
+
+    def collect(self) -> Iterator[Metric]:
+        database_up = GaugeMetricFamily("pipesentry_database_up", "1 if the API could read the database")
+        try:
+            families = self._read()
+        except StorageError as error:
+            log.warning("metrics: database unavailable: %s", error)
+            database_up.add_metric([], 0)
+            yield database_up
+            return
+        database_up.add_metric([], 1)
+        yield database_up
+        yield from families
+
+    def _read(self) -> list[Metric]:
+        database = self.gate.get()
+        labels = ["node"]
+        up = GaugeMetricFamily("pipesentry_node_up", "1 if the node answered its last poll", labels=labels)
+        state = GaugeMetricFamily(
+            "pipesentry_node_state", "1 for the node's current state (one series per state)", labels=["node", "state"]
+        )
+        damage = GaugeMetricFamily("pipesentry_node_damage", "1 if the node's state is damage", labels=labels)
+        peak = GaugeMetricFamily("pipesentry_node_di_peak", "peak damage index of the latest monitor measurement",
+                                 labels=labels)
+        threshold = GaugeMetricFamily("pipesentry_node_di_threshold", "the node's damage threshold", labels=labels)
+        seen = GaugeMetricFamily("pipesentry_node_last_seen_timestamp_seconds", "when the node last answered",
+                                 labels=labels)
+        measured = GaugeMetricFamily("pipesentry_node_last_measurement_timestamp_seconds",
+                                     "acquisition time of the node's latest stored measurement", labels=labels)
+        errors = CounterMetricFamily("pipesentry_node_link_events",
+                                     "serial-link and gateway counters of the node (reset when the node reboots)",
+                                     labels=["node", "counter"])
+        deliveries = GaugeMetricFamily("pipesentry_alert_deliveries", "alert deliveries by status", labels=["status"])
+        dead = GaugeMetricFamily("pipesentry_alert_deliveries_dead", "alert deliveries given up on (dead letters)")
+        with database.session() as session:
+            nodes = session.scalars(select(NodeRow).order_by(NodeRow.node_id)).all()
+            last_measured = dict(
+                session.execute(
+                    select(MeasurementRow.node_id, func.max(MeasurementRow.acquired_at)).group_by(MeasurementRow.node_id)
+                ).all()
+            )
+            by_status = dict(
+                session.execute(select(DeliveryRow.status, func.count()).group_by(DeliveryRow.status)).all()
+            )
+        for node in nodes:
+            name = [node.node_id]
+            up.add_metric(name, 1.0 if node.online else 0.0)
+            for candidate in NodeState:
+                state.add_metric([node.node_id, candidate.value], 1.0 if node.state == candidate else 0.0)
+            damage.add_metric(name, 1.0 if node.state == NodeState.DAMAGE else 0.0)
+            if node.latest_di_peak is not None:
+                peak.add_metric(name, node.latest_di_peak)
+            if node.latest_threshold is not None:
+                threshold.add_metric(name, node.latest_threshold)
+            seen.add_metric(name, node.last_seen_at.timestamp())
+            if node.node_id in last_measured:
+                measured.add_metric(name, last_measured[node.node_id].timestamp())
+            for counter, value in sorted((node.error_counters or {}).items()):
+                errors.add_metric([node.node_id, str(counter)], float(value))
+        for status in DeliveryStatus:
+            deliveries.add_metric([status.value], float(by_status.get(status, 0)))
+        dead.add_metric([], float(by_status.get(DeliveryStatus.DEAD, 0)))
+        return [up, state, damage, peak, threshold, seen, measured, errors, deliveries, dead]
+
+
+def metrics_registry(gate: DatabaseGate) -> CollectorRegistry:
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(FleetCollector(gate))
+    return registry
+
+
+def exposition(registry: CollectorRegistry) -> bytes:
+    return generate_latest(registry)

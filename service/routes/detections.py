@@ -1,0 +1,29 @@
+"""Fleet-wide detections and defect estimates, latest first."""
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query
+
+from db.models import NodeState
+from service import history, schemas
+from service.deps import ReadSession, require_viewer
+from service.problems import problem_responses
+from service.routes.common import DEFAULT_LIMIT, Cursor, End, Limit, Start
+
+router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depends(require_viewer)],
+                   responses=problem_responses(401, 403, 503))
+
+
+@router.get("", responses=problem_responses(400, 404))
+def list_detections(
+    session: ReadSession,
+    node_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
+    state: NodeState | None = None,
+    start: Start = None,
+    end: End = None,
+    limit: Limit = DEFAULT_LIMIT,
+    cursor: Cursor = None,
+) -> schemas.DetectionPage:
+    return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
+                                  cursor=cursor)

@@ -1,0 +1,231 @@
+"""Typed response and request bodies of the API (what the OpenAPI schema documents)."""
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from db.models import DeliveryStatus, MapSource, MeasurementKind, NodeState, Role, Severity
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+class Geometry(_Out):
+    rx_angles_deg: list[float] = Field(description="receiver angles on the circumference, row i of the traces")
+    tx_angles_deg: list[float]
+    tx_rx_distance_mm: float = Field(description="axial distance between the Tx and Rx rings")
+    circumference_mm: float
+    pipe_length_mm: float | None = None
+    tx_axial_mm: float | None = Field(None, description="Tx ring position from the pipe end behind it")
+
+
+class Health(_Out):
+    online: bool = Field(description="the node answered its last poll")
+    first_seen_at: datetime
+    last_seen_at: datetime = Field(description="when the node last answered")
+
+
+class Baseline(_Out):
+    id: int
+    node_id: str
+    measurement_id: int = Field(description="the measurement DI maps are computed against")
+    created_by: str = Field(description="who: 'gateway' or the name of the API key")
+    created_at: datetime
+    reason: str
+    active: bool
+    deactivated_at: datetime | None
+
+
+class Detection(_Out):
+    """The verdict on one monitor measurement and the estimated defect position."""
+
+    id: int
+    node_id: str
+    measurement_id: int
+    created_at: datetime
+    peak_di: float = Field(description="peak of the gateway's DI map")
+    threshold: float | None = Field(description="damage threshold; null while the node is calibrating")
+    state: NodeState = Field(description="node state after this measurement")
+    axial_mm: float | None = Field(description="estimated defect: axial distance from the Tx ring")
+    angle_deg: float | None = Field(description="estimated defect: angle on the circumference")
+    confidence: float | None
+
+
+class Node(_Out):
+    node_id: str
+    port_url: str
+    firmware: str
+    protocol_version: int
+    n_channels: int
+    fs_hz: float
+    geometry: Geometry
+    health: Health
+    error_counters: dict[str, int] = Field(description="serial-link and gateway counters, as last polled")
+    state: NodeState
+    latest_di_peak: float | None
+    latest_threshold: float | None
+    active_baseline: Baseline | None
+    latest_detection: Detection | None
+
+
+class DiMapSummary(_Out):
+    id: int
+    source: MapSource = Field(description="node: computed on the FPGA; gateway: recomputed from the raw traces")
+    method: str
+    peak_di: float
+    baseline_measurement_id: int | None
+    created_at: datetime
+
+
+class MeasurementSummary(_Out):
+    id: int
+    node_id: str
+    kind: MeasurementKind
+    acquired_at: datetime
+    node_measurement_id: int
+    temperature_c: float | None
+    n_channels: int
+    n_samples: int
+    traces_available: bool = Field(description="false once retention pruned the raw traces")
+
+
+class Measurement(MeasurementSummary):
+    averaging: int
+    fs_hz: float
+    t0_s: float
+    volts_per_code: float
+    excitation_hz: float
+    cycles: int
+    traces_pruned_at: datetime | None
+    stored_at: datetime
+    di_maps: list[DiMapSummary]
+    detection: Detection | None
+
+
+class MeasurementPage(BaseModel):
+    items: list[MeasurementSummary]
+    next_cursor: str | None = Field(description="pass as ?cursor= for the next page; null on the last page")
+
+
+class DetectionPage(BaseModel):
+    items: list[Detection]
+    next_cursor: str | None
+
+
+class TraceUnits(StrEnum):
+    VOLTS = "volts"
+    CODES = "codes"
+
+
+class Traces(BaseModel):
+    measurement_id: int
+    units: TraceUnits
+    fs_hz: float
+    t0_s: float = Field(description="time of sample 0 relative to the excitation start")
+    volts_per_code: float
+    rx_angles_deg: list[float]
+    traces: list[list[float]] = Field(description="[n_channels][n_samples]")
+
+
+class Grid(BaseModel):
+    axial_start_mm: float
+    axial_step_mm: float
+    axial_count: int
+    angle_start_deg: float
+    angle_step_deg: float
+    angle_count: int
+
+
+class Estimate(BaseModel):
+    axial_mm: float = Field(description="axial distance from the Tx ring")
+    angle_deg: float
+    di: float | None
+
+
+class DiMap(DiMapSummary):
+    measurement_id: int
+    grid: Grid
+    pixels: list[list[float | None]] = Field(description="[axial_count][angle_count]; null for a non-finite pixel")
+    estimate: Estimate | None = Field(description="the estimated defect position on this map")
+
+
+class BaselineCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    measurement_id: int = Field(ge=1, le=2**62)
+    reason: str = Field(min_length=1, max_length=2000, description="why (kept in the history)")
+    activate: bool = Field(True, description="make it the node's active baseline now")
+
+
+class BaselineActivate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    reason: str = Field(min_length=1, max_length=2000)
+
+
+class AlertStatus(StrEnum):
+    OPEN = "open"
+    ACKNOWLEDGED = "acknowledged"
+    RESOLVED = "resolved"
+
+
+class Delivery(_Out):
+    sink: str
+    status: DeliveryStatus
+    attempts: int
+    next_attempt_at: datetime | None
+    last_error: str | None
+
+
+class Alert(_Out):
+    id: uuid.UUID
+    node_id: str | None
+    kind: str
+    severity: Severity
+    payload: dict[str, Any]
+    created_at: datetime
+    status: AlertStatus
+    acknowledged_at: datetime | None
+    acknowledged_by: str | None
+    resolved_at: datetime | None
+    resolved_by: str | None
+    deliveries: list[Delivery]
+
+
+class AlertPage(BaseModel):
+    items: list[Alert]
+    next_cursor: str | None
+
+
+class ApiKey(_Out):
+    id: int
+    name: str
+    role: Role
+    key_prefix: str = Field(description="first characters of the key, to recognise it")
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class ApiKeyCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=128, pattern=r"^[^\x00-\x1f\x7f]+$")
+    role: Role
+
+
+class ApiKeyCreated(ApiKey):
+    token: str = Field(description="the key itself: shown once, only its hash is stored")
+
+
+class Liveness(BaseModel):
+    status: str = "ok"
+
+
+class Readiness(BaseModel):
+    status: str = "ready"
+    schema_revision: str

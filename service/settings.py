@@ -1,0 +1,34 @@
+"""The API server's settings: one pydantic-settings class, overridable by PIPESENTRY_API_* variables."""
+from __future__ import annotations
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+KIB = 1024
+
+
+class ApiSettings(BaseSettings):
+    """Everything ``pipesentry api`` needs; e.g. ``PIPESENTRY_API_DATABASE_URL=sqlite:////var/lib/ps.db``."""
+
+    model_config = SettingsConfigDict(env_prefix="PIPESENTRY_API_", extra="forbid")
+
+    database_url: str = Field("sqlite:///pipesentry.db", description="the gateway's database (read; API writes operator actions)")
+    host: str = Field("127.0.0.1", description="listen address; put a TLS-terminating proxy in front for remote access")
+    port: int = Field(8000, ge=1, le=65535)
+    base_path: str = Field("/api/v1", description="prefix of every API route")
+    cors_origins: list[str] = Field(
+        default_factory=list, description="browser origins allowed to call the API cross-site (empty = CORS off)"
+    )
+    max_body_bytes: int = Field(64 * KIB, ge=1, description="larger request bodies get 413")
+    metrics_require_key: bool = Field(
+        True, description="/metrics needs a key (any role) unless this is false (trusted scrape network only)"
+    )
+    dashboard_refresh_s: float = Field(10.0, ge=1.0, le=3600.0, description="how often the dashboard reloads its data")
+    busy_timeout_ms: int = Field(5000, ge=0, description="SQLite: how long a write waits for the gateway's lock")
+
+    @field_validator("base_path")
+    @classmethod
+    def _base_path_shape(cls, value: str) -> str:
+        if not value.startswith("/") or value.endswith("/") or len(value) < 2:
+            raise ValueError("base_path must start with '/' and not end with '/', e.g. /api/v1")
+        return value
