@@ -14,6 +14,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
 
+from alerts.config import AlertingSettings
+
 
 class ConfigError(ValueError):
     """The configuration is invalid; the message names the offending key(s)."""
@@ -91,6 +93,7 @@ class GatewaySettings(BaseSettings):
     database: DatabaseSettings = DatabaseSettings()
     retention: RetentionSettings = RetentionSettings()
     logging: LoggingSettings = LoggingSettings()
+    alerting: AlertingSettings = AlertingSettings()  # [alerting] and [[alerting.sinks]], see docs/alerting.md
     reopen_backoff_max_s: float = Field(60.0, gt=0, description="cap of the exponential backoff to reopen a port")
     shutdown_timeout_s: float = Field(5.0, gt=0)
     watchdog_stall_s: float = Field(

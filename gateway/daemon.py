@@ -7,6 +7,7 @@ import threading
 import time
 from datetime import timedelta
 
+from alerts.delivery import AlertDelivery
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageError
 from db.retention import prune_traces
@@ -32,6 +33,8 @@ class Gateway:
             for node in settings.nodes
         ]
         self._retention = threading.Thread(target=self._retention_loop, name=RETENTION, daemon=True)
+        # Alert delivery: one thread per sink plus the outage watcher; none of them waits on a node or on each other.
+        self.alerting = AlertDelivery(settings.alerting, db, stop=self.stop, heartbeats=self.heartbeats)
 
     def stall_limits_s(self) -> dict[str, float]:
         """How long each loop may go without a beat before the watchdog pings stop."""
@@ -43,12 +46,14 @@ class Gateway:
             cycle_s = node.interval_s + self.settings.reopen_backoff_max_s + 60 * node.timeout_s * (node.retries + 1)
             limits[w.name] = fixed or 3 * cycle_s
         limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
+        limits.update({name: fixed or limit for name, limit in self.alerting.stall_limits_s().items()})
         return limits
 
     def start(self) -> None:
         for w in self.workers:
             w.thread.start()
         self._retention.start()
+        self.alerting.start()
 
     def _retention_loop(self) -> None:
         r = self.settings.retention
@@ -81,6 +86,7 @@ class Gateway:
         for w in self.workers:
             w.thread.join(max(0.0, deadline - time.monotonic()))
         self._retention.join(max(0.0, deadline - time.monotonic()))
+        self.alerting.join(max(0.0, deadline - time.monotonic()))
         self.db.dispose()
 
 

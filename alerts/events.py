@@ -1,0 +1,303 @@
+"""Pure builders of outbox events (``db.records.EventInput``): what happened, to which node, where.
+
+Every event id is a UUIDv5 of the fact it reports (node, kind, measurement or outage), so
+building the same event twice gives the same id: the outbox refuses a duplicate fact and
+receivers can use the id as an idempotency key. Payloads are plain JSON, the same for all
+sinks; each sink renders them (``alerts/webhook.py`` ... ``alerts/mqtt.py``).
+"""
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from alerts.config import AlertingSettings
+from db.clock import utc_now
+from db.models import Severity
+from db.records import EventInput
+
+PAYLOAD_SCHEMA = 1
+# Fixed namespace of PipeSentry event ids (uuid5); never change it, ids would stop matching.
+EVENT_NAMESPACE = uuid.UUID("6f1c3f4e-2b7a-5d3e-9a41-7c2e1b0d5a90")
+
+
+class EventKind(StrEnum):
+    DAMAGE_RAISED = "damage_raised"  # to suspected or damage
+    DAMAGE_CLEARED = "damage_cleared"  # from suspected/damage back to ok
+    MONITORING_BLIND = "monitoring_blind"  # to no_valid_baseline: the pipe cannot be assessed
+    MONITORING_RESTORED = "monitoring_restored"  # no_valid_baseline -> ok
+    NODE_OFFLINE = "node_offline"
+    NODE_ONLINE = "node_online"
+    BASELINE_CHANGED = "baseline_changed"
+    SINK_DISABLED = "sink_disabled"  # a receiver answered 410 Gone
+
+
+# Node states as strings: the gateway's flagger has more states than the stored enum.
+ALARM_STATES = {"suspected": Severity.WARNING, "damage": Severity.CRITICAL}
+OK_STATE = "ok"
+BLIND_STATE = "no_valid_baseline"
+# Kinds that carry a node's state transition (from_state -> to_state).
+STATE_KINDS = frozenset(
+    {EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED, EventKind.MONITORING_BLIND, EventKind.MONITORING_RESTORED}
+)
+OUTAGE_KINDS = frozenset({EventKind.NODE_OFFLINE, EventKind.NODE_ONLINE})
+
+
+def event_id(*parts: object) -> uuid.UUID:
+    """The stable id of the fact named by ``parts``."""
+    return uuid.uuid5(EVENT_NAMESPACE, "/".join(str(p) for p in parts))
+
+
+def measurement_url(settings: AlertingSettings, measurement_id: int) -> str:
+    return f"{settings.api_base_url}/api/v1/measurements/{measurement_id}"
+
+
+def di_map_png_url(settings: AlertingSettings, measurement_id: int) -> str:
+    return f"{settings.api_base_url}/api/v1/measurements/{measurement_id}/di-maps/gateway.png"
+
+
+def node_url(settings: AlertingSettings, node_id: str) -> str:
+    return f"{settings.api_base_url}/api/v1/nodes/{node_id}"
+
+
+def state_change_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    from_state: str,
+    to_state: str,
+    measurement_id: int | None,
+    peak_di: float | None,
+    threshold: float | None,
+    axial_mm: float | None = None,
+    angle_deg: float | None = None,
+    occurred_at: datetime | None = None,
+) -> EventInput | None:
+    """The alert for a node's state change, or None when the change is not one operators need.
+
+    to suspected/damage: ``damage_raised`` (warning/critical); suspected/damage -> ok:
+    ``damage_cleared``; -> no_valid_baseline: ``monitoring_blind`` (an open damage alert stays
+    open: a blind node has not shown the pipe is sound); no_valid_baseline -> ok:
+    ``monitoring_restored``. Commissioning/calibrating transitions give None.
+    """
+    from_state, to_state = str(from_state), str(to_state)
+    if from_state == to_state:
+        return None
+    if to_state in ALARM_STATES:
+        kind, severity = EventKind.DAMAGE_RAISED, ALARM_STATES[to_state]
+        routing = severity
+    elif to_state == OK_STATE and from_state in ALARM_STATES:
+        kind, severity, routing = EventKind.DAMAGE_CLEARED, Severity.INFO, ALARM_STATES[from_state]
+    elif to_state == BLIND_STATE:
+        kind, severity = EventKind.MONITORING_BLIND, Severity.WARNING
+        routing = severity
+    elif to_state == OK_STATE and from_state == BLIND_STATE:
+        kind, severity, routing = EventKind.MONITORING_RESTORED, Severity.INFO, Severity.WARNING
+    else:
+        return None
+    occurred_at = occurred_at or utc_now()
+    fact = measurement_id if measurement_id is not None else occurred_at.isoformat()
+    eid = event_id(kind, node_id, fact, f"{from_state}->{to_state}")
+    detection = _detection(peak_di, threshold)
+    location = _location(axial_mm, angle_deg)
+    payload = _payload(
+        settings, eid, kind, node_id, severity, routing, occurred_at,
+        summary=_state_summary(kind, node_id, from_state, to_state, detection, location),
+        state=to_state, previous_state=from_state, online=True, measurement_id=measurement_id,
+        detection=detection, location=location,
+    )
+    return EventInput(kind=kind, severity=severity, payload=payload, sinks=settings.sink_names_for(routing), id=eid)
+
+
+def node_offline_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    state: str,
+    last_seen_at: datetime,
+    now: datetime | None = None,
+) -> EventInput:
+    """``node_offline`` (warning): the node has not answered since ``last_seen_at``.
+
+    One outage (one ``last_seen_at``) gives one event id, however often it is checked.
+    """
+    now = now or utc_now()
+    eid = event_id(EventKind.NODE_OFFLINE, node_id, last_seen_at.isoformat())
+    offline_s = max(0.0, (now - last_seen_at).total_seconds())
+    payload = _payload(
+        settings, eid, EventKind.NODE_OFFLINE, node_id, Severity.WARNING, Severity.WARNING, now,
+        summary=f"node {node_id} offline: not seen for {_duration(offline_s)} (since {last_seen_at:%Y-%m-%d %H:%M:%S} UTC)",
+        state=str(state), previous_state=str(state), online=False,
+        extra={"last_seen_at": last_seen_at.isoformat(), "offline_for_s": round(offline_s, 1)},
+    )
+    return EventInput(
+        kind=EventKind.NODE_OFFLINE, severity=Severity.WARNING, payload=payload,
+        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
+    )
+
+
+def node_online_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    state: str,
+    offline_event_id: uuid.UUID,
+    offline_since: datetime,
+    seen_at: datetime,
+) -> EventInput:
+    """``node_online`` (info, routed like the offline alert it ends): the node answers again."""
+    eid = event_id(EventKind.NODE_ONLINE, offline_event_id)
+    down_s = max(0.0, (seen_at - offline_since).total_seconds())
+    payload = _payload(
+        settings, eid, EventKind.NODE_ONLINE, node_id, Severity.INFO, Severity.WARNING, seen_at,
+        summary=f"node {node_id} back online after {_duration(down_s)}, state {state}",
+        state=str(state), previous_state=str(state), online=True,
+        extra={"offline_event_id": str(offline_event_id), "offline_since": offline_since.isoformat(),
+               "offline_for_s": round(down_s, 1)},
+    )
+    return EventInput(
+        kind=EventKind.NODE_ONLINE, severity=Severity.INFO, payload=payload,
+        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
+    )
+
+
+def baseline_changed_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    baseline_id: int,
+    measurement_id: int,
+    previous_measurement_id: int | None,
+    created_by: str,
+    reason: str,
+    state: str,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``baseline_changed`` (info): the node's DI maps are now computed against another measurement."""
+    occurred_at = occurred_at or utc_now()
+    eid = event_id(EventKind.BASELINE_CHANGED, node_id, baseline_id)
+    previous = "none" if previous_measurement_id is None else f"measurement {previous_measurement_id}"
+    payload = _payload(
+        settings, eid, EventKind.BASELINE_CHANGED, node_id, Severity.INFO, Severity.INFO, occurred_at,
+        summary=f"node {node_id} baseline changed to measurement {measurement_id} (was {previous}) by {created_by}: {reason}",
+        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        extra={"baseline_id": baseline_id, "previous_measurement_id": previous_measurement_id,
+               "created_by": created_by, "reason": reason},
+    )
+    return EventInput(
+        kind=EventKind.BASELINE_CHANGED, severity=Severity.INFO, payload=payload,
+        sinks=settings.sink_names_for(Severity.INFO), id=eid,
+    )
+
+
+def sink_disabled_event(
+    settings: AlertingSettings,
+    *,
+    sink_name: str,
+    endpoint_fingerprint: str,
+    status_code: int,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``sink_disabled`` (warning): a receiver said 410 Gone; told to every other sink."""
+    occurred_at = occurred_at or utc_now()
+    eid = event_id(EventKind.SINK_DISABLED, sink_name, endpoint_fingerprint)
+    payload = _payload(
+        settings, eid, EventKind.SINK_DISABLED, None, Severity.WARNING, Severity.WARNING, occurred_at,
+        summary=f"alert sink {sink_name} disabled: its receiver answered HTTP {status_code} (Gone); "
+        "change its URL in the gateway config to enable it again",
+        state=None, previous_state=None, online=None,
+        extra={"sink": sink_name, "endpoint_fingerprint": endpoint_fingerprint, "status_code": status_code},
+    )
+    sinks = tuple(n for n in settings.sink_names_for(Severity.WARNING) if n != sink_name)
+    return EventInput(kind=EventKind.SINK_DISABLED, severity=Severity.WARNING, payload=payload, sinks=sinks, id=eid)
+
+
+def _payload(
+    settings: AlertingSettings,
+    eid: uuid.UUID,
+    kind: EventKind,
+    node_id: str | None,
+    severity: Severity,
+    routing: Severity,
+    occurred_at: datetime,
+    *,
+    summary: str,
+    state: str | None,
+    previous_state: str | None,
+    online: bool | None,
+    measurement_id: int | None = None,
+    detection: dict[str, Any] | None = None,
+    location: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    links: dict[str, str] = {}
+    if node_id is not None:
+        links["node"] = node_url(settings, node_id)
+    if measurement_id is not None:
+        links["measurement"] = measurement_url(settings, measurement_id)
+        links["di_map_png"] = di_map_png_url(settings, measurement_id)
+    return {
+        "schema": PAYLOAD_SCHEMA,
+        "event_id": str(eid),
+        "kind": str(kind),
+        "node_id": node_id,
+        "severity": str(severity),
+        "routing_severity": str(routing),
+        "occurred_at": occurred_at.isoformat(),
+        "summary": summary,
+        "state": state,
+        "previous_state": previous_state,
+        "online": online,
+        "measurement_id": measurement_id,
+        "detection": detection,
+        "location": location,
+        "links": links,
+        **(extra or {}),
+    }
+
+
+def _detection(peak_di: float | None, threshold: float | None) -> dict[str, Any] | None:
+    if peak_di is None:
+        return None
+    ratio = peak_di / threshold if threshold else None
+    return {"peak_di": float(peak_di), "threshold": None if threshold is None else float(threshold),
+            "di_over_threshold": None if ratio is None else round(float(ratio), 4)}
+
+
+def _location(axial_mm: float | None, angle_deg: float | None) -> dict[str, float] | None:
+    if axial_mm is None or angle_deg is None:
+        return None
+    return {"axial_mm": round(float(axial_mm), 1), "angle_deg": round(float(angle_deg), 1)}
+
+
+def location_text(location: dict[str, Any] | None) -> str:
+    if not location:
+        return "location unknown"
+    return f"{location['axial_mm']:.0f} mm axial, {location['angle_deg']:.0f} deg"
+
+
+def detection_text(detection: dict[str, Any] | None) -> str:
+    if not detection:
+        return "DI n/a"
+    if detection.get("threshold") is None:
+        return f"DI {detection['peak_di']:.3g} (no threshold yet)"
+    return f"DI {detection['peak_di']:.3g} vs threshold {detection['threshold']:.3g}"
+
+
+def _state_summary(kind, node_id, from_state, to_state, detection, location) -> str:
+    if kind == EventKind.DAMAGE_RAISED:
+        return f"{to_state.upper()} on node {node_id}: {detection_text(detection)} at {location_text(location)}"
+    if kind == EventKind.DAMAGE_CLEARED:
+        return f"cleared on node {node_id}: {from_state} -> ok, {detection_text(detection)}"
+    if kind == EventKind.MONITORING_BLIND:
+        return f"node {node_id} cannot assess the pipe: no valid baseline for current conditions (was {from_state})"
+    return f"node {node_id} monitoring again: no_valid_baseline -> ok, {detection_text(detection)}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

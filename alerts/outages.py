@@ -1,0 +1,65 @@
+"""Node reachability alerts: node_offline after ``offline_after_s`` without an answer, node_online after.
+
+Everything is read from the database (``nodes.last_seen_at`` and the outage events already
+in the outbox), so the check is idempotent and survives restarts: an outage keeps its one
+event id however often it is checked. Right after the gateway starts, nodes are given
+``offline_after_s`` to answer before the downtime of the gateway itself counts against them.
+"""
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from alerts.config import AlertingSettings
+from alerts.events import OUTAGE_KINDS, EventKind, node_offline_event, node_online_event
+from alerts.outbox import add_event_once
+from db.models import EventRow
+from db.nodes import list_nodes
+from db.records import EventInput
+
+
+def check_outages(
+    session: Session, settings: AlertingSettings, *, now: datetime, watching_since: datetime
+) -> list[EventInput]:
+    """Put node_offline/node_online events in the outbox where a node's reachability changed.
+
+    Call inside ``Database.write()``; returns the events added.
+    """
+    added = []
+    for node in list_nodes(session):
+        open_outage = _open_outage(session, node.node_id)
+        if open_outage is None:
+            reference = max(node.last_seen_at, watching_since)
+            if (now - reference).total_seconds() <= settings.offline_after_s:
+                continue
+            event = node_offline_event(
+                settings, node_id=node.node_id, state=node.state.value, last_seen_at=node.last_seen_at, now=now
+            )
+        else:
+            offline_since = datetime.fromisoformat(open_outage.payload["last_seen_at"])
+            if node.last_seen_at <= offline_since:
+                continue
+            event = node_online_event(
+                settings,
+                node_id=node.node_id,
+                state=node.state.value,
+                offline_event_id=open_outage.id,
+                offline_since=offline_since,
+                seen_at=node.last_seen_at,
+            )
+        if add_event_once(session, event, node_id=node.node_id, now=now):
+            added.append(event)
+    return added
+
+
+def _open_outage(session: Session, node_id: str) -> EventRow | None:
+    """The node's newest outage event if it is a node_offline (not yet followed by node_online)."""
+    latest = session.scalars(
+        select(EventRow)
+        .where(EventRow.node_id == node_id, EventRow.kind.in_([str(k) for k in OUTAGE_KINDS]))
+        .order_by(EventRow.created_at.desc(), EventRow.id.desc())
+        .limit(1)
+    ).first()
+    return latest if latest is not None and latest.kind == EventKind.NODE_OFFLINE else None
