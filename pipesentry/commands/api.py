@@ -1,0 +1,44 @@
+"""`pipesentry api`: serve the operator API and dashboard with uvicorn."""
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from pipesentry.errors import fail
+
+
+def api(
+    database_url: Annotated[
+        str | None, typer.Option(help="the gateway's database URL (env PIPESENTRY_API_DATABASE_URL)")
+    ] = None,
+    host: Annotated[str | None, typer.Option(help="listen address (env PIPESENTRY_API_HOST; default 127.0.0.1)")] = None,
+    port: Annotated[int | None, typer.Option(help="listen port (env PIPESENTRY_API_PORT; default 8000)")] = None,
+    log_level: Annotated[str, typer.Option(help="uvicorn log level")] = "info",
+) -> None:
+    """Serve the operator API (/api/v1), /healthz, /readyz, /metrics and the dashboard at /.
+
+    Other settings (CORS origins, body limit, base path, whether /metrics needs a key) come
+    from PIPESENTRY_API_* environment variables; see docs/api.md.
+    """
+    import uvicorn
+    from pydantic import ValidationError
+
+    from service.app import create_app
+    from service.settings import ApiSettings
+
+    overrides = {k: v for k, v in {"database_url": database_url, "host": host, "port": port}.items() if v is not None}
+    try:
+        settings = ApiSettings(**overrides)
+    except ValidationError as exc:
+        fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()))
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=log_level,
+        proxy_headers=False,
+        server_header=False,
+        limit_concurrency=512,
+        timeout_graceful_shutdown=5,
+    )
