@@ -33,8 +33,10 @@ def analyze(
     ``peak_di`` are always there. ``method="paper"`` is Algorithm 1 (DI normalised by the
     direct arrival's own window energy).
     """
+    from imaging.dimap import check_compatible
     from imaging.pipeline import assess
 
+    check_compatible(baseline, current)  # one explicit baseline: a mismatch is the caller's error
     settings = AssessSettings(
         method=method,  # type: ignore[arg-type]
         feature=feature,  # type: ignore[arg-type]
