@@ -12,7 +12,6 @@ import os
 import socket
 import sqlite3
 import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -247,9 +246,16 @@ def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
     yield from serve_copy_of_fleet(tmp_path_factory.mktemp("api"), tmp_path_factory.getbasetemp())
 
 
+def assert_problem(response: httpx.Response, status: int, slug: str) -> dict:
+    """The response is an RFC 9457 problem of this status and type, with no traceback in it."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json"), response.headers
+    body = response.json()
+    assert body["type"] == f"urn:pipesentry:problem:{slug}", body
+    assert body["status"] == status and body["title"]
+    assert "Traceback" not in response.text and 'File "' not in response.text
+    return body
+
+
 def in_ci() -> bool:
     return os.environ.get("CI") == "true"
-
-
-def deadline(seconds: float) -> float:
-    return time.monotonic() + seconds
