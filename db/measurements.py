@@ -100,6 +100,11 @@ def store_measurement(
                 angle_deg=detection.angle_deg,
                 state=detection.state,
                 confidence=detection.confidence,
+                method=detection.method,
+                defects=detection.defects,
+                sensor_faults=detection.sensor_faults,
+                baseline_measurement_id=detection.baseline_measurement_id,
+                stretch=detection.stretch,
                 created_at=now,
             )
         )

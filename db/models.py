@@ -211,7 +211,12 @@ Index(
 
 
 class DetectionRow(Base):
-    """The verdict on one monitor measurement: DI peak against threshold, and where."""
+    """The verdict on one monitor measurement: DI peak against threshold, and where.
+
+    ``peak_di`` is None when the imaging abstained (no baseline matched the conditions).
+    ``axial_mm``/``angle_deg``/``confidence`` are the map's peak; ``defects`` lists every
+    defect found above the threshold ({axial_mm, angle_deg, di, severity, confidence}).
+    """
 
     __tablename__ = "detections"
     __table_args__ = (Index("ix_detections_node_time", "node_id", "created_at", "id"),)
@@ -219,12 +224,17 @@ class DetectionRow(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), unique=True)
     node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))
-    peak_di: Mapped[float] = mapped_column(Float)
+    peak_di: Mapped[float | None] = mapped_column(Float)
     threshold: Mapped[float | None] = mapped_column(Float)  # None while the threshold is being calibrated
     axial_mm: Mapped[float | None] = mapped_column(Float)
     angle_deg: Mapped[float | None] = mapped_column(Float)
     state: Mapped[NodeState] = mapped_column(_enum(NodeState, "detection_state"))
     confidence: Mapped[float | None] = mapped_column(Float)
+    method: Mapped[str | None] = mapped_column(String(32))
+    defects: Mapped[list[Any] | None] = mapped_column(json_type())
+    sensor_faults: Mapped[list[Any] | None] = mapped_column(json_type())
+    baseline_measurement_id: Mapped[int | None] = mapped_column(BigId, ForeignKey("measurements.id"))
+    stretch: Mapped[float | None] = mapped_column(Float)  # baseline time-stretch factor used (BSS)
     created_at: Mapped[datetime]
 
 

@@ -82,12 +82,17 @@ class DiMapInput:
 class DetectionInput:
     """The verdict on a monitor measurement; the location is None when nothing stands out."""
 
-    peak_di: float
+    peak_di: float | None  # None when the imaging abstained (no valid baseline)
     threshold: float | None  # None while the node's threshold is being calibrated
     state: NodeState
     axial_mm: float | None = None
     angle_deg: float | None = None
     confidence: float | None = None
+    method: str | None = None
+    defects: list[dict[str, Any]] | None = None
+    sensor_faults: list[dict[str, Any]] | None = None
+    baseline_measurement_id: int | None = None
+    stretch: float | None = None
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,19 @@ class ThresholdSettings(_Section):
         return self
 
 
+class ImagingSettings(_Section):
+    """How the gateway images a node's measurements (docs/imaging.md)."""
+
+    method: Literal["multipath", "paper"] = Field("multipath", description="paper = Algorithm 1 as published")
+    feature: Literal["analytic", "envelope", "squared"] = "analytic"
+    compensate: bool = Field(True, description="temperature compensation: optimal baseline selection + stretch")
+    max_residual: float | None = Field(
+        None, gt=0, description="abstain above this relative residual after compensation (None: the default)"
+    )
+    max_defects: int = Field(3, ge=1, le=16)
+    library_size: int = Field(24, ge=1, le=256, description="baselines kept in the node's OBS library")
+
+
 class GeometryOverride(_Section):
     """Geometry that overrides what the node reports in INFO (e.g. a node configured wrongly)."""
 
@@ -66,6 +79,7 @@ class GeometryOverride(_Section):
     velocity_m_s: float | None = Field(None, gt=0)
     pipe_length_mm: float | None = Field(None, gt=0)
     tx_axial_mm: float | None = Field(None, ge=0)
+    wall_mm: float | None = Field(None, gt=0, description="pipe wall, for the mid-wall circumference waves travel")
 
 
 class NodeSettings(_Section):
@@ -82,6 +96,7 @@ class NodeSettings(_Section):
     averaging: int = Field(10, ge=1, le=10000, description="shots averaged per measurement (the paper: 10)")
     n_samples: int = Field(6000, ge=16, description="record length per channel")
     geometry: GeometryOverride = GeometryOverride()
+    imaging: ImagingSettings = ImagingSettings()
     threshold: ThresholdSettings = ThresholdSettings()
 
 

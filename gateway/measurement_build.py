@@ -17,6 +17,7 @@ class NodeGeometryView:
 
     geometry: NodeGeometry
     velocity_m_s: float
+    wall_mm: float | None = None
 
 
 def effective_geometry(info: InfoReply, override: GeometryOverride) -> NodeGeometryView:
@@ -33,7 +34,7 @@ def effective_geometry(info: InfoReply, override: GeometryOverride) -> NodeGeome
         if value is not None:
             fields[key] = value
     velocity = override.velocity_m_s or info.velocity_m_s or DEFAULT_VELOCITY_M_S
-    return NodeGeometryView(NodeGeometry(**fields), float(velocity))
+    return NodeGeometryView(NodeGeometry(**fields), float(velocity), override.wall_mm)
 
 
 def measurement_from_codes(

@@ -24,6 +24,7 @@ from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, 
 from db.nodes import get_node, record_node_health, upsert_node
 from db.records import DetectionInput, DiMapInput, EventInput, MapGrid, NodeInfo, StateChangeInput
 from gateway.config import NodeSettings
+from gateway.assessment import BaselineLibrary, assess_settings, detection_input, run_assessment
 from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
 from gateway.logs import node_context
 from gateway.measurement_build import NodeGeometryView, effective_geometry, measurement_from_codes
@@ -34,8 +35,6 @@ from gateway.node_client import (
     ProtocolMismatch,
 )
 from gateway.watchdog import Heartbeats
-from imaging.analysis import analyze
-from imaging.measurement import Measurement
 from protocol.messages import ConfigureReply, InfoReply
 from sqlalchemy import func, select
 
@@ -110,7 +109,7 @@ class NodeWorker:
         self.counters = NodeCounters()
         self.conn: Connection | None = None
         self.flag = FlagState()
-        self._baseline_cache: tuple[int, Measurement] | None = None
+        self.library = BaselineLibrary(settings.imaging.library_size)
         self._threshold_cache: tuple[int, float | None] | None = None
         self._flag_loaded = False
         self._n_baselines = 0
@@ -295,29 +294,6 @@ class NodeWorker:
         self.flag = FlagState()
         return CycleOutcome(measurement_id, MeasurementKind.BASELINE, new_state)
 
-    def _baseline(self, measurement_id: int) -> Measurement:
-        if self._baseline_cache is None or self._baseline_cache[0] != measurement_id:
-            with self.db.session() as session:
-                row = get_measurement(session, measurement_id)
-                codes = load_traces(row)
-                meta = (row.volts_per_code, row.fs_hz, row.t0_s, row.excitation_hz, row.cycles, row.temperature_c)
-            volts_per_code, fs_hz, t0_s, excitation_hz, cycles, temperature_c = meta
-            assert self.conn is not None
-            baseline = measurement_from_codes(
-                codes,
-                volts_per_code,
-                fs_hz=fs_hz,
-                t0_s=t0_s,
-                view=self.conn.view,
-                channels=tuple(range(codes.shape[0])) if codes.shape[0] != len(self.conn.view.geometry.rx_angles_deg) else None,
-                excitation_hz=excitation_hz,
-                cycles=cycles,
-                temperature_c=temperature_c,
-            )
-            self._baseline_cache = (measurement_id, baseline)
-            self._threshold_cache = None
-        return self._baseline_cache[1]
-
     def _threshold(self, session, baseline_measurement_id: int) -> float | None:
         """The node's threshold: absolute, or calibrated on the first K monitor peaks since its baseline."""
         if self._threshold_cache is not None and self._threshold_cache[0] == baseline_measurement_id:
@@ -334,6 +310,7 @@ class NodeWorker:
                     DetectionRow.node_id == self.settings.id,
                     DetectionRow.created_at >= since.created_at,
                     DetectionRow.threshold.is_(None),
+                    DetectionRow.peak_di.is_not(None),
                 )
                 .order_by(DetectionRow.id)
                 .limit(settings.calibration_count)
@@ -348,7 +325,11 @@ class NodeWorker:
         m = self.settings.threshold.hysteresis_count
         rows = session.execute(
             select(DetectionRow.peak_di, DetectionRow.threshold)
-            .where(DetectionRow.node_id == self.settings.id, DetectionRow.threshold.is_not(None))
+            .where(
+                DetectionRow.node_id == self.settings.id,
+                DetectionRow.threshold.is_not(None),
+                DetectionRow.peak_di.is_not(None),
+            )
             .order_by(DetectionRow.id.desc())
             .limit(m)
         ).all()
@@ -365,18 +346,22 @@ class NodeWorker:
         self._flag_loaded = True
 
     def _store_monitor(self, conn, status, acq, transfer, current, baseline_id: int, node_errors) -> CycleOutcome:
-        baseline = self._baseline(baseline_id)
-        result = analyze(baseline, current)
-        estimate = result.defects[0] if result.defects else None
-        maps = [
-            DiMapInput(
-                source=MapSource.GATEWAY,
-                method=result.di_map.method,
-                grid=MapGrid(**result.di_map.grid.spec()),
-                pixels=result.di_map.pixels.astype(np.float32),
-                baseline_measurement_id=baseline_id,
+        with self.db.session() as session:
+            library_ids = self.library.ids(session, self.settings.id)
+            library = self.library.load(session, library_ids, conn.view)
+            threshold = self._threshold(session, baseline_id)
+        result = run_assessment(current, library, assess_settings(self.settings, threshold, conn.view.wall_mm))
+        maps = []
+        if result.di_map is not None:
+            maps.append(
+                DiMapInput(
+                    source=MapSource.GATEWAY,
+                    method=result.method,
+                    grid=MapGrid(**result.di_map.grid.spec()),
+                    pixels=result.di_map.pixels.astype(np.float32),
+                    baseline_measurement_id=library_ids[result.baseline.index],
+                )
             )
-        ]
         if self.settings.read_node_di and status.baseline_stored:
             try:
                 computed = conn.client.compute_di(acq.measurement_id)
@@ -393,21 +378,23 @@ class NodeWorker:
             except NodeClientError as exc:
                 # The gateway's own map is what flags damage; the node's map is for comparison.
                 log.warning("node DI map not read this cycle: %s: %s", type(exc).__name__, exc)
+        for fault in result.sensor_faults:
+            log.warning("sensor fault on receiver %s: %s", fault.as_dict().get("receiver"), fault.as_dict().get("reason"))
         with self.db.write() as session:
             node = get_node(session, self.settings.id)
             if not self._flag_loaded:
                 self._load_flag_state(session, node.state)
-            threshold = self._threshold(session, baseline_id)
             prev_state = node.state
-            if threshold is None:
-                new_flag, new_state = FlagState(), NodeState.CALIBRATING
+            if not result.valid_baseline:
+                new_flag = step(self.flag, None, math.inf, self.settings.threshold.hysteresis_count)
+            elif threshold is None:
+                new_flag = FlagState(NodeState.CALIBRATING)
             else:
                 new_flag = step(self.flag, result.peak_di, threshold, self.settings.threshold.hysteresis_count)
-                new_state = new_flag.state
+            new_state = new_flag.state
             change = StateChangeInput(prev_state, new_state) if new_state != prev_state else None
-            events = []
-            if change is not None:
-                events.append(self._state_event(change, result.peak_di, threshold, estimate))
+            detection = detection_input(result, new_state, threshold, library_ids)
+            events = [self._state_event(change, detection)] if change is not None else []
             row = store_measurement(
                 session,
                 self.settings.id,
@@ -423,13 +410,7 @@ class NodeWorker:
                 cycles=current.cycles,
                 temperature_c=_finite_or_none(transfer.temperature_c),
                 di_maps=maps,
-                detection=DetectionInput(
-                    peak_di=result.peak_di,
-                    threshold=threshold,
-                    state=new_state,
-                    axial_mm=None if estimate is None else estimate.axial_mm,
-                    angle_deg=None if estimate is None else estimate.angle_deg,
-                ),
+                detection=detection,
                 state_change=change,
                 events=events,
             )
@@ -443,13 +424,13 @@ class NodeWorker:
             measurement_id,
             MeasurementKind.MONITOR,
             new_state,
-            peak_di=result.peak_di,
+            peak_di=detection.peak_di,
             threshold=threshold,
-            axial_mm=None if estimate is None else estimate.axial_mm,
-            angle_deg=None if estimate is None else estimate.angle_deg,
+            axial_mm=detection.axial_mm,
+            angle_deg=detection.angle_deg,
         )
 
-    def _state_event(self, change: StateChangeInput, peak_di, threshold, estimate) -> EventInput:
+    def _state_event(self, change: StateChangeInput, detection: DetectionInput) -> EventInput:
         return EventInput(
             kind="state_changed",
             severity=STATE_SEVERITY.get(change.to_state, Severity.INFO),
@@ -457,10 +438,11 @@ class NodeWorker:
                 "node_id": self.settings.id,
                 "from_state": change.from_state.value,
                 "to_state": change.to_state.value,
-                "peak_di": peak_di,
-                "threshold": threshold,
-                "axial_mm": None if estimate is None else estimate.axial_mm,
-                "angle_deg": None if estimate is None else estimate.angle_deg,
+                "peak_di": detection.peak_di,
+                "threshold": detection.threshold,
+                "axial_mm": detection.axial_mm,
+                "angle_deg": detection.angle_deg,
+                "defects": detection.defects,
             },
             sinks=self.sinks,
         )

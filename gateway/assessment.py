@@ -1,0 +1,127 @@
+"""The gateway's imaging of one monitor measurement: the node's baseline library, the settings, the verdict.
+
+Pure apart from reading baseline traces through the database session it is given.
+"""
+from __future__ import annotations
+
+import math
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from db.baselines import active_baseline
+from db.measurements import get_measurement, load_traces
+from db.models import MeasurementKind, MeasurementRow, NodeState
+from db.records import DetectionInput
+from gateway.config import NodeSettings
+from gateway.measurement_build import NodeGeometryView, measurement_from_codes
+from imaging.measurement import Measurement
+from imaging.pipeline import AssessSettings, Assessment, assess
+
+
+class BaselineLibrary:
+    """A node's defect-free references for optimal baseline selection: the active one first,
+    then the most recent other baseline measurements. Decoded traces are cached by id."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._cache: dict[int, Measurement] = {}
+
+    def ids(self, session: Session, node_id: str) -> list[int]:
+        active = active_baseline(session, node_id)
+        others = session.scalars(
+            select(MeasurementRow.id)
+            .where(
+                MeasurementRow.node_id == node_id,
+                MeasurementRow.kind == MeasurementKind.BASELINE,
+                MeasurementRow.traces_pruned_at.is_(None),
+            )
+            .order_by(MeasurementRow.id.desc())
+            .limit(self.size)
+        ).all()
+        ids = ([active.measurement_id] if active is not None else []) + [i for i in others if active is None or i != active.measurement_id]
+        return ids[: self.size]
+
+    def load(self, session: Session, ids: list[int], view: NodeGeometryView) -> list[Measurement]:
+        for stale in set(self._cache) - set(ids):
+            del self._cache[stale]
+        out = []
+        for measurement_id in ids:
+            if measurement_id not in self._cache:
+                row = get_measurement(session, measurement_id)
+                self._cache[measurement_id] = measurement_from_codes(
+                    load_traces(row),
+                    row.volts_per_code,
+                    fs_hz=row.fs_hz,
+                    t0_s=row.t0_s,
+                    view=view,
+                    channels=None,
+                    excitation_hz=row.excitation_hz,
+                    cycles=row.cycles,
+                    temperature_c=row.temperature_c,
+                )
+            out.append(self._cache[measurement_id])
+        return out
+
+
+def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float | None) -> AssessSettings:
+    """The node's imaging settings; the gateway's damage threshold is also the detection threshold."""
+    im = node.imaging
+    extra = {} if im.max_residual is None else {"max_residual": im.max_residual}
+    return AssessSettings(
+        method=im.method,
+        feature=im.feature,
+        compensate=im.compensate,
+        threshold=threshold,
+        max_defects=im.max_defects,
+        wall_mm=wall_mm,
+        **extra,
+    )
+
+
+def run_assessment(current: Measurement, library: list[Measurement], settings: AssessSettings) -> Assessment:
+    return assess(current, library, settings)
+
+
+def detection_input(
+    result: Assessment, state: NodeState, threshold: float | None, library_ids: list[int]
+) -> DetectionInput:
+    """What is stored as the verdict on the measurement."""
+    peak = result.peak
+    baseline_id = stretch = None
+    if result.baseline is not None:
+        baseline_id = library_ids[result.baseline.index]
+        stretch = result.baseline.stretch
+    confidence = None
+    if result.defects:
+        confidence = _finite(result.defects[0].confidence.as_dict().get("score"))
+    return DetectionInput(
+        peak_di=_finite(result.peak_di),
+        threshold=threshold,
+        state=state,
+        axial_mm=None if peak is None else peak.axial_mm,
+        angle_deg=None if peak is None else peak.angle_deg,
+        confidence=confidence,
+        method=result.method,
+        defects=[_json_safe(d.as_dict()) for d in result.defects],
+        sensor_faults=[_json_safe(f.as_dict()) for f in result.sensor_faults],
+        baseline_measurement_id=baseline_id,
+        stretch=stretch,
+    )
+
+
+def _finite(value) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+
+
+def _json_safe(value):
+    """Plain JSON types: NaN/inf become None (JSON has no such numbers)."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if hasattr(value, "item"):
+        return _json_safe(value.item())
+    return value
