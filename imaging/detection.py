@@ -103,8 +103,8 @@ def gaussian_probability_of_detection(defect_peak_dis, threshold: float) -> floa
 # is in units of the baseline's direct-arrival amplitude (matched-filter statistic), the
 # paper's DI divided by the direct arrival's own window energy. Measured: docs/accuracy.md.
 DEFAULT_THRESHOLDS: dict[tuple[str, str], float] = {
-    ("multipath", "analytic"): 0.05,
-    ("multipath", "envelope"): 0.05,
+    ("multipath", "analytic"): 0.02,
+    ("multipath", "envelope"): 0.02,
     ("multipath", "squared"): 0.005,
     ("paper", "analytic"): 0.01,
     ("paper", "envelope"): 0.01,

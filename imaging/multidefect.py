@@ -1,9 +1,9 @@
 """Several defects in one record: image, take the strongest peak, remove that scatterer's echoes, repeat.
 
-The echoes of a point scatterer at the found position are modelled on every receiver as one
-burst per modelled path (imaging/paths.py), each with a free amplitude and carrier phase
-(a burst and its quadrature twin), fitted to that receiver's residual by least squares and
-subtracted. The next peak is then sought on the cleaned residual, away from the peaks
+The echoes of point scatterers at the positions found so far are modelled on every receiver
+as one burst per modelled path (imaging/paths.py), each with a free amplitude and carrier
+phase (a burst and its quadrature twin), fitted jointly to that receiver's residual by least
+squares and subtracted from it. The next peak is then sought on the cleaned residual, away from the peaks
 already found, until it falls below the detection threshold or ``max_defects`` is reached.
 """
 from __future__ import annotations
@@ -51,39 +51,48 @@ def fit_echoes(
     residual: np.ndarray,
     reference: Measurement,
     model: PathModel,
-    axial_mm: float,
-    angle_deg: float,
+    positions: list[tuple[float, float]],
     *,
     rx_mask: np.ndarray | None = None,
-) -> np.ndarray:
-    """Least-squares fit, per receiver, of a point scatterer's echoes at (axial_mm, angle_deg); [n_rx, n]."""
+) -> list[np.ndarray]:
+    """Joint least-squares fit, per receiver, of point scatterers' echoes at ``positions`` (axial_mm, angle_deg).
+
+    Returns one fitted echo array [n_rx, n] per position (their sum is the full fit). Fitting
+    the scatterers together keeps one from absorbing another's echoes where they overlap.
+    """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
     mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
     in_phase, quadrature = burst_pair(reference.fs_hz, reference.excitation_hz, reference.cycles)
     c_mm_s = reference.velocity_m_s * MM_PER_M
-    fitted = np.zeros_like(residual)
+    fitted = [np.zeros_like(residual) for _ in positions]
     for m in range(n_rx):
         if not mask[m]:
             continue
-        columns = []
-        for _family, length, _w in scalar_paths(model, axial_mm, angle_deg - float(reference.rx_angles_deg[m])):
-            k = math.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
-            lo, hi = max(k, 0), min(k + in_phase.size, n)
-            if hi <= lo:
-                continue
-            for shape in (in_phase, quadrature):
-                col = np.zeros(n)
-                col[lo:hi] = shape[lo - k : hi - k]
-                columns.append(col)
+        columns, owner = [], []
+        for p, (axial_mm, angle_deg) in enumerate(positions):
+            rel = angle_deg - float(reference.rx_angles_deg[m])
+            for _group, length, _w in scalar_paths(model, axial_mm, rel):
+                k = math.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
+                lo, hi = max(k, 0), min(k + in_phase.size, n)
+                if hi <= lo:
+                    continue
+                for shape in (in_phase, quadrature):
+                    col = np.zeros(n)
+                    col[lo:hi] = shape[lo - k : hi - k]
+                    columns.append(col)
+                    owner.append(p)
         if not columns:
             continue
         design = np.stack(columns, axis=1)
-        # Normal equations: 2 x paths unknowns only; lstsq on the small Gram matrix copes with
+        # Normal equations: 2 unknowns per path only; lstsq on the small Gram matrix copes with
         # coincident paths (identical columns) by taking the minimum-norm split between them.
-        gram = design.T @ design
-        coef, *_ = np.linalg.lstsq(gram, design.T @ residual[m], rcond=1e-10)
-        fitted[m] = design @ coef
+        coef, *_ = np.linalg.lstsq(design.T @ design, design.T @ residual[m], rcond=1e-10)
+        owner_arr = np.asarray(owner)
+        for p in range(len(positions)):
+            sel = owner_arr == p
+            if sel.any():
+                fitted[p][m] = design[:, sel] @ coef[sel]
     return fitted
 
 
@@ -121,12 +130,15 @@ def find_defects(
         raise MultiDefectError(f"max_defects must be at least 1, got {max_defects}")
     circumference_mm = circumference_mm or reference.circumference_mm
     power = feature_power(feature)
-    residual = np.asarray(residual, dtype=np.float64).copy()
+    original = np.asarray(residual, dtype=np.float64)
+    residual = original.copy()
     first: DIMap | None = None
     found: list[Found] = []
-    for _ in range(max_defects):
+    fits: list[np.ndarray] = []
+
+    def image(res: np.ndarray) -> tuple[np.ndarray, DIMap]:
         values = residual_feature(
-            residual, fs_hz=reference.fs_hz, excitation_hz=reference.excitation_hz, cycles=reference.cycles,
+            res, fs_hz=reference.fs_hz, excitation_hz=reference.excitation_hz, cycles=reference.cycles,
             reference_amplitude=reference_amplitude_v, feature=feature,
             window_samples=default_window_samples(reference),
         )
@@ -134,7 +146,11 @@ def find_defects(
             values, reference.rx_angles_deg, grid, model, velocity_m_s=reference.velocity_m_s,
             t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power, rx_mask=rx_mask,
         )
-        di_map = DIMap(pixels, grid, "multipath", default_window_samples(reference))
+        return values, DIMap(pixels, grid, "multipath", default_window_samples(reference))
+
+    for _ in range(max_defects):
+        values, di_map = image(residual)
+        pixels = di_map.pixels
         first = first or di_map
         candidates = pixels.copy()
         for prior in found:
@@ -148,6 +164,31 @@ def find_defects(
             break
         severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
         found.append(Found(estimate, di_map, severity))
-        residual -= fit_echoes(residual, reference, model, estimate.axial_mm, estimate.angle_deg, rx_mask=rx_mask)
+        positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
+        fits = fit_echoes(original, reference, model, positions, rx_mask=rx_mask)
+        residual = original - sum(fits)
     assert first is not None
+    if len(found) > 1:
+        found = _refine(found, fits, original, image, reference, model, power, rx_mask, circumference_mm, exclusion_mm)
     return first, found
+
+
+def _refine(found, fits, original, image, reference, model, power, rx_mask, circumference_mm, exclusion_mm):
+    """One pass: re-locate each defect on the residual with every *other* defect's echoes removed.
+
+    The search places each defect while the later ones are still in the residual, which biases
+    the earlier peaks where their echoes overlap; re-imaging each with the others' (jointly
+    fitted) echoes removed undoes most of that.
+    """
+    refined = []
+    for i, item in enumerate(found):
+        others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(original))
+        values, di_map = image(original - others)
+        near = exclusion_mask(di_map.grid, item.estimate.axial_mm, item.estimate.angle_deg, exclusion_mm,
+                              circumference_mm)
+        candidates = np.where(near, di_map.pixels, -np.inf)
+        a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
+        estimate = refine_peak(di_map, int(a), int(b))
+        severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
+        refined.append(Found(estimate, di_map, severity))
+    return sorted(refined, key=lambda f: -f.estimate.di)

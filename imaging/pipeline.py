@@ -206,6 +206,10 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         first_compatible = next((b for b in baselines if _compatible(b, current)), None)
         if first_compatible is not None:
             faults = check_receivers(first_compatible, current)
+        # Most channels "faulty" at once is a common-mode change (another pipe, a wrong or
+        # stale baseline), not broken transducers: leave it to baseline selection to judge.
+        if len(faults) > current.n_rx // 2:
+            faults = []
     mask = healthy_mask(current.n_rx, faults)
     match = select_baseline(
         baselines, current, compensate=settings.compensate, max_stretch=settings.max_stretch,

@@ -69,3 +69,38 @@ def baseline_and_scatterer(
         base = base + rng.normal(0, noise_rms, base.shape)
         cur = cur + rng.normal(0, noise_rms, cur.shape)
     return measurement(base.astype(np.float32), rx), measurement(cur.astype(np.float32), rx)
+
+
+def baseline_and_scatterers(
+    scatterers: list[tuple[float, float, float]],
+    *,
+    n_rx: int = 16,
+    n_samples: int = 6000,
+    noise_rms: float = 0.0,
+    seed: int = 0,
+    both_ways: bool = True,
+) -> tuple[Measurement, Measurement]:
+    """Like ``baseline_and_scatterer`` for several point scatterers (axial_mm, angle_deg, amplitude).
+
+    With ``both_ways`` each echo also arrives the long way round the pipe, as a real scattered
+    wave does. Amplitude falls as 1/sqrt(distance) (2-D spreading), as above.
+    """
+    rng = np.random.default_rng(seed)
+    fs = 10e6
+    t = np.arange(n_samples) / fs
+    rx = np.arange(n_rx) * 360.0 / n_rx
+    c_mm_s = C_M_S * 1000.0
+    base = np.tile(hanning_pulse(t - 400.0 / c_mm_s), (n_rx, 1))
+    cur = base.copy()
+    for axial_mm, angle_deg, amplitude in scatterers:
+        diff = np.mod(angle_deg - rx, 360.0)
+        short = np.minimum(diff, 360.0 - diff) * CIRCUMFERENCE_MM / 360.0
+        legs = [short, CIRCUMFERENCE_MM - short] if both_ways else [short]
+        for arc in legs:
+            r = np.hypot(400.0 - axial_mm, arc)
+            for m in range(n_rx):
+                cur[m] += amplitude / np.sqrt(max(r[m], 10.0) / 37.0) * hanning_pulse(t - (axial_mm + r[m]) / c_mm_s)
+    if noise_rms:
+        base = base + rng.normal(0, noise_rms, base.shape)
+        cur = cur + rng.normal(0, noise_rms, cur.shape)
+    return measurement(base.astype(np.float32), rx), measurement(cur.astype(np.float32), rx)
