@@ -289,10 +289,10 @@ def _state_summary(kind, node_id, from_state, to_state, detection, location) -> 
     if kind == EventKind.DAMAGE_RAISED:
         return f"{to_state.upper()} on node {node_id}: {detection_text(detection)} at {location_text(location)}"
     if kind == EventKind.DAMAGE_CLEARED:
-        return f"cleared on node {node_id}: {from_state} -> ok, {detection_text(detection)}"
+        return f"cleared on node {node_id}: {from_state} → ok, {detection_text(detection)}"
     if kind == EventKind.MONITORING_BLIND:
         return f"node {node_id} cannot assess the pipe: no valid baseline for current conditions (was {from_state})"
-    return f"node {node_id} monitoring again: no_valid_baseline -> ok, {detection_text(detection)}"
+    return f"node {node_id} monitoring again: no_valid_baseline → ok, {detection_text(detection)}"
 
 
 def _duration(seconds: float) -> str:

@@ -1,0 +1,86 @@
+"""Shared set-up of the alerting tests: a real SQLite outbox with nodes, events put in as the gateway would."""
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+
+from alerts.config import AlertingSettings
+from alerts.delivery import SinkWorker, make_transport
+from alerts.events import state_change_event
+from db.database import Database, open_database
+from db.measurements import add_event
+from db.models import DeliveryRow, EventRow
+from db.nodes import upsert_node
+from db.records import EventInput
+from db_fixtures import node_info
+
+NODES = ("node-a", "node-b", "node-c")
+T0 = datetime(2026, 3, 1, 12, 0, tzinfo=timezone.utc)
+# The transitions one node goes through, oldest first (each a distinct, ordered event).
+CYCLE = [("ok", "suspected"), ("suspected", "damage"), ("damage", "ok"), ("ok", "suspected")]
+
+
+@pytest.fixture
+def outbox_db(tmp_path: Path) -> Iterator[Database]:
+    database = open_database(f"sqlite:///{tmp_path / 'alerts.db'}")
+    with database.write() as session:
+        for node_id in NODES:
+            upsert_node(session, node_info(node_id), seen_at=T0)
+    yield database
+    database.dispose()
+
+
+def fast_policy(**overrides) -> dict:
+    """Delivery policy for tests: short timeouts and backoff, a few tries."""
+    policy = {"timeout_s": 0.5, "max_attempts": 8, "backoff_base_s": 0.01, "backoff_cap_s": 0.05}
+    policy.update(overrides)
+    return policy
+
+
+def alerting(*sinks: dict, **top) -> AlertingSettings:
+    return AlertingSettings.model_validate({"api_base_url": "http://127.0.0.1:8000", "poll_interval_s": 0.05,
+                                            **top, "sinks": list(sinks)})
+
+
+def put_state_events(database: Database, settings: AlertingSettings, node_ids=NODES, cycle=CYCLE,
+                     start_measurement_id: int = 1) -> list[EventInput]:
+    """Each node goes through ``cycle``; one transaction per event, in creation order."""
+    events = []
+    measurement_id = start_measurement_id
+    for step, (from_state, to_state) in enumerate(cycle):
+        for node_id in node_ids:
+            event = state_change_event(
+                settings, node_id=node_id, from_state=from_state, to_state=to_state, measurement_id=measurement_id,
+                peak_di=0.5, threshold=0.3, axial_mm=200.0, angle_deg=90.0,
+                occurred_at=T0 + timedelta(minutes=step),
+            )
+            measurement_id += 1
+            with database.write() as session:
+                add_event(session, event, node_id=node_id)
+            events.append(event)
+    return events
+
+
+def deliveries(database: Database, sink: str | None = None) -> list[tuple[DeliveryRow, EventRow]]:
+    with database.session() as session:
+        query = select(DeliveryRow, EventRow).join(EventRow, EventRow.id == DeliveryRow.event_id)
+        if sink is not None:
+            query = query.where(DeliveryRow.sink == sink)
+        return list(session.execute(query.order_by(EventRow.created_at, DeliveryRow.id)).all())
+
+
+def sink_worker(settings: AlertingSettings, name: str, database: Database, stop: threading.Event, **kw) -> SinkWorker:
+    sink = settings.sink(name)
+    return SinkWorker(settings, sink, make_transport(sink, database), database, stop=stop, **kw)
+
+
+@pytest.fixture
+def stop() -> Iterator[threading.Event]:
+    event = threading.Event()
+    yield event
+    event.set()

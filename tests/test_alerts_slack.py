@@ -1,0 +1,46 @@
+"""Slack-compatible incoming webhook: one readable line per event, with links, through retries."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from alerts.outbox import pending_heads
+from alerts.slack import slack_text
+from db.models import DeliveryStatus
+
+from alerts_fixtures import alerting, deliveries, fast_policy, outbox_db, put_state_events, sink_worker, stop  # noqa: F401
+from alerts_receivers import HANG, HttpReceiver, fail
+from process_harness import wait_until
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def test_each_event_becomes_one_readable_line_with_links(outbox_db, stop):
+    receiver = HttpReceiver([fail(500), HANG])
+    try:
+        settings = alerting({"type": "slack", "name": "chat", "url": receiver.url + "/services/T/B/X", **fast_policy()})
+        events = put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage"), ("damage", "ok")])
+        sink_worker(settings, "chat", outbox_db, stop).thread.start()
+        wait_until(lambda: [d.status for d, _ in deliveries(outbox_db)] == [DeliveryStatus.DELIVERED] * 2, 20, 0.05,
+                   what="both delivered")
+        texts = [r.json()["text"] for r in receiver.accepted()]
+        assert len(texts) == 2 and all("\n" not in t for t in texts)
+        raised, cleared = texts
+        assert raised.startswith(":rotating_light: DAMAGE on node node-a: DI 0.5 vs threshold 0.3 at 200 mm axial, 90 deg")
+        assert "<http://127.0.0.1:8000/api/v1/measurements/1|measurement 1>" in raised
+        assert "<http://127.0.0.1:8000/api/v1/measurements/1/di-maps/gateway.png|DI map>" in raised
+        assert raised.endswith(f"event {str(events[0].id)[:8]}")
+        assert cleared.startswith(":white_check_mark: cleared on node node-a: damage → ok")
+        assert {r.path for r in receiver.requests} == {"/services/T/B/X"}
+    finally:
+        receiver.close()
+
+
+def test_slack_markup_characters_in_text_are_escaped(outbox_db):
+    settings = alerting({"type": "slack", "name": "chat", "url": "http://127.0.0.1:9/x"})
+    put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage")])
+    with outbox_db.session() as session:
+        item, = pending_heads(session, "chat")
+    odd = replace(item, payload={**item.payload, "summary": "a <b> & c"})
+    assert slack_text(odd).startswith(":rotating_light: a &lt;b&gt; &amp; c |")
