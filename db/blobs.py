@@ -20,7 +20,7 @@ CODEC_SHUFFLE_ZLIB_V1 = "shuffle-zlib-v1"
 TRACE_DTYPE = "<i2"  # ADC codes
 PIXEL_DTYPE = "<f4"  # DI map pixels
 SUPPORTED_DTYPES = frozenset({TRACE_DTYPE, PIXEL_DTYPE})
-_ZLIB_LEVEL = 6  # ~3 ms for 100 kB on a gateway-class CPU; higher levels gain <2 %
+_ZLIB_LEVEL = 1  # 192 kB of shuffled codes: 1.9 ms -> 55 kB at level 1, 10 ms -> 46 kB at level 6 (measured)
 
 
 @dataclass(frozen=True)
