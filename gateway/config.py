@@ -46,7 +46,7 @@ class ThresholdSettings(_Section):
     mode: Literal["absolute", "calibrated"] = "calibrated"
     absolute: float | None = Field(None, gt=0, description="threshold when mode = absolute")
     calibration_count: int = Field(10, ge=2, description="K baseline-condition measurements for mode = calibrated")
-    false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement; sets k in mean + k*sigma")
+    false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement, for the calibrated bound")
     hysteresis_count: int = Field(3, ge=1, description="M consecutive exceedances to flag damage, M below to clear")
 
     @model_validator(mode="after")
@@ -167,10 +167,3 @@ def load_settings(path: str | Path) -> GatewaySettings:
         return _FromFile()
     except ValidationError as exc:
         raise ConfigError(f"{path}: {_format_errors(exc)}") from None
-
-
-def false_alarm_k(false_alarm_rate: float) -> float:
-    """k in mean + k*sigma for a one-sided Gaussian tail of the given probability."""
-    from scipy.stats import norm
-
-    return float(norm.isf(false_alarm_rate)) if 0 < false_alarm_rate < 1 else math.inf

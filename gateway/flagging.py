@@ -15,7 +15,7 @@ import statistics
 from dataclasses import dataclass, replace
 
 from db.models import NodeState
-from gateway.config import ThresholdSettings, false_alarm_k
+from gateway.config import ThresholdSettings
 
 FLAGGING_STATES = (NodeState.OK, NodeState.SUSPECTED, NodeState.DAMAGE)
 
@@ -52,18 +52,31 @@ class CalibrationError(ValueError):
     """Too few or degenerate baseline-condition readings to calibrate a threshold."""
 
 
-def calibrated_threshold(peaks: list[float], false_alarm_rate: float) -> float:
-    """mean + k*sigma of baseline-condition DI peaks, k from the false-alarm rate (Gaussian tail).
+MIN_LOG_SPREAD = 0.01  # floor on the spread of log peak DIs: 1 %, so identical readings still leave a margin
 
-    sigma has a floor of 1 % of the mean so that identical readings (a noise-free simulator)
-    do not give a threshold that any noise would cross.
+
+def calibrated_threshold(peaks: list[float], false_alarm_rate: float) -> float:
+    """Upper prediction bound for the next baseline-condition peak DI at the given false-alarm rate.
+
+    A peak DI is the maximum over many pixels of a noisy map: positive and right-skewed, so it
+    is modelled as log-normal. With K calibration readings of unknown mean and spread, the
+    one-sided prediction bound for one more reading is
+    ``mean(log p) + t(1 - rate, K - 1) * sd(log p) * sqrt(1 + 1/K)`` (Student t), which is wider
+    than mean + z*sigma when K is small, as it must be.
     """
-    values = [float(p) for p in peaks if math.isfinite(p)]
+    values = [float(p) for p in peaks if math.isfinite(p) and p > 0]
     if len(values) < 2:
-        raise CalibrationError(f"need at least 2 finite DI peaks to calibrate, got {len(values)}")
-    mean = statistics.fmean(values)
-    sigma = max(statistics.stdev(values), 0.01 * abs(mean), 1e-12)
-    return mean + false_alarm_k(false_alarm_rate) * sigma
+        raise CalibrationError(f"need at least 2 positive finite DI peaks to calibrate, got {len(values)}")
+    if not 0 < false_alarm_rate < 1:
+        raise CalibrationError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate}")
+    from scipy.stats import t as student_t
+
+    logs = [math.log(v) for v in values]
+    k = len(logs)
+    mean = statistics.fmean(logs)
+    spread = max(statistics.stdev(logs), MIN_LOG_SPREAD)
+    bound = mean + float(student_t.isf(false_alarm_rate, k - 1)) * spread * math.sqrt(1 + 1 / k)
+    return math.exp(bound)
 
 
 def threshold_for(settings: ThresholdSettings, calibration_peaks: list[float]) -> float | None:

@@ -1,6 +1,9 @@
 """Damage flagging: hysteresis ok -> suspected -> damage and back, and threshold calibration."""
 import math
 
+import numpy as np
+from scipy.stats import t as student_t
+
 import pytest
 from hypothesis import given, strategies as st
 
@@ -63,10 +66,25 @@ def test_damage_is_never_flagged_without_m_exceedances_in_a_row(readings, m):
             assert run_len >= m
 
 
-def test_calibrated_threshold_is_mean_plus_k_sigma():
+def test_calibrated_threshold_is_the_log_normal_prediction_bound():
     peaks = [1.0, 1.2, 0.8, 1.1, 0.9]
-    thr = calibrated_threshold(peaks, 0.0013499)  # k = 3
-    assert thr == pytest.approx(1.0 + 3 * 0.158113883, rel=1e-4)
+    logs = np.log(peaks)
+    expected = math.exp(logs.mean() + student_t.isf(1e-3, 4) * logs.std(ddof=1) * math.sqrt(1 + 1 / 5))
+    assert calibrated_threshold(peaks, 1e-3) == pytest.approx(expected, rel=1e-12)
+
+
+def test_few_calibration_readings_give_a_wider_bound_than_many():
+    rng = np.random.default_rng(3)
+    peaks = list(np.exp(rng.normal(0.0, 0.1, 200)))
+    assert calibrated_threshold(peaks[:5], 1e-3) > calibrated_threshold(peaks, 1e-3)
+
+
+def test_calibrated_threshold_holds_its_false_alarm_rate_on_log_normal_peaks():
+    rng = np.random.default_rng(11)
+    thresholds = [calibrated_threshold(list(np.exp(rng.normal(0.0, 0.2, 10))), 0.01) for _ in range(400)]
+    fresh = np.exp(rng.normal(0.0, 0.2, 400))
+    rate = float(np.mean(fresh > np.array(thresholds)))
+    assert rate < 0.03  # nominal 1 %; a bound learnt from 10 readings must not be far above it
 
 
 def test_identical_calibration_readings_still_give_a_margin():
