@@ -55,7 +55,7 @@ def test_node_list_shows_identity_health_state_and_baseline_of_every_node(viewer
     by_id = {n["node_id"]: n for n in nodes}
     assert by_id[DAMAGED_NODE]["state"] == "damage"
     assert by_id[DAMAGED_NODE]["latest_di_peak"] > by_id[DAMAGED_NODE]["latest_threshold"]
-    assert {by_id[n]["state"] for n in QUIET_NODES} <= {"ok", "calibrating"}
+    assert all(by_id[n]["state"] != "damage" for n in QUIET_NODES)
 
 
 def test_node_detail_matches_its_entry_in_the_list(viewer):
