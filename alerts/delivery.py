@@ -131,18 +131,8 @@ class SinkWorker:
 
     def run(self) -> None:
         try:
-            while not self.stop.is_set():
-                self._beat()
-                try:
-                    wait_s = self.run_once()
-                except StorageError as exc:
-                    log.error("alerts %s: storage unavailable, will retry: %s", self.sink.name, exc)
-                    wait_s = self.alerting.poll_interval_s
-                except Exception:  # a bug must not end alerting for this sink; logged with its traceback
-                    log.exception("alerts %s: unexpected error in the delivery pass", self.sink.name)
-                    wait_s = self.alerting.poll_interval_s
-                if wait_s > 0 and self.stop.wait(wait_s):
-                    break
+            _loop(self.name, self.run_once, stop=self.stop, heartbeats=self.heartbeats,
+                  retry_s=self.alerting.poll_interval_s)
         finally:
             self.transport.close()
 
@@ -248,9 +238,24 @@ class SinkWorker:
         if killed:
             log.error("alerts %s: sink is disabled, %d deliveries marked dead", self.sink.name, killed)
 
-    def _beat(self) -> None:
-        if self.heartbeats is not None:
-            self.heartbeats.beat(self.name)
+
+
+def _loop(name: str, one_pass: Callable[[], float], *, stop: threading.Event, heartbeats: Beats | None,
+          retry_s: float) -> None:
+    """Run ``one_pass`` until ``stop``, beating the heartbeat each round; errors are logged, then retried."""
+    while not stop.is_set():
+        if heartbeats is not None:
+            heartbeats.beat(name)
+        try:
+            wait_s = one_pass()
+        except StorageError as exc:
+            log.error("%s: storage unavailable, will retry in %.1f s: %s", name, retry_s, exc)
+            wait_s = retry_s
+        except Exception:  # a bug must not end alerting; logged with its traceback, then retried
+            log.exception("%s: unexpected error, will retry in %.1f s", name, retry_s)
+            wait_s = retry_s
+        if wait_s > 0 and stop.wait(wait_s):
+            break
 
 
 class OutageWatcher:
@@ -281,23 +286,15 @@ class OutageWatcher:
         return 3 * self.interval_s + 60.0
 
     def run(self) -> None:
-        while not self.stop.is_set():
-            if self.heartbeats is not None:
-                self.heartbeats.beat(OUTAGES)
-            try:
-                self.check_once()
-            except StorageError as exc:
-                log.error("alerts: outage check failed (storage), will retry: %s", exc)
-            except Exception:
-                log.exception("alerts: outage check failed unexpectedly, will retry")
-            self.stop.wait(self.interval_s)
+        _loop(OUTAGES, self.check_once, stop=self.stop, heartbeats=self.heartbeats, retry_s=self.interval_s)
 
-    def check_once(self) -> int:
+    def check_once(self) -> float:
+        """Add the outage events due now; returns seconds until the next check."""
         with self.database.write() as session:
             added = check_outages(session, self.alerting, now=self.clock(), watching_since=self.watching_since)
         for event in added:
             log.warning("alerts: %s", event.payload["summary"], extra={"event_kind": event.kind})
-        return len(added)
+        return self.interval_s
 
 
 class AlertDelivery:

@@ -63,25 +63,11 @@ def pending_heads(session: Session, sink: str) -> list[OutboxEvent]:
     Only a node's head may be attempted: a later event for a node never overtakes an
     earlier one at the same sink. Events without a node form one group of their own.
     """
-    rank = (
-        func.row_number()
-        .over(partition_by=EventRow.node_id, order_by=(EventRow.created_at, DeliveryRow.id))
-        .label("rank")
+    return _first_per_node(
+        session,
+        (DeliveryRow.sink == sink, DeliveryRow.status == DeliveryStatus.PENDING),
+        (EventRow.created_at, DeliveryRow.id),
     )
-    ranked = (
-        select(DeliveryRow.id.label("delivery_id"), rank)
-        .join(EventRow, EventRow.id == DeliveryRow.event_id)
-        .where(DeliveryRow.sink == sink, DeliveryRow.status == DeliveryStatus.PENDING)
-        .subquery()
-    )
-    rows = session.execute(
-        select(DeliveryRow, EventRow)
-        .join(EventRow, EventRow.id == DeliveryRow.event_id)
-        .join(ranked, ranked.c.delivery_id == DeliveryRow.id)
-        .where(ranked.c.rank == 1)
-        .order_by(EventRow.created_at, DeliveryRow.id)
-    ).all()
-    return [_outbox_event(delivery, event) for delivery, event in rows]
 
 
 def is_due(item: OutboxEvent, now: datetime) -> bool:
@@ -157,19 +143,24 @@ def add_event_once(session: Session, event: EventInput, *, node_id: str | None, 
 
 def latest_delivered(session: Session, sink: str, kinds: Iterable[str]) -> list[OutboxEvent]:
     """Per node, the newest event of ``kinds`` delivered to ``sink`` (what the receiver last heard)."""
-    rank = (
-        func.row_number()
-        .over(partition_by=EventRow.node_id, order_by=(EventRow.created_at.desc(), DeliveryRow.id.desc()))
-        .label("rank")
-    )
-    ranked = (
-        select(DeliveryRow.id.label("delivery_id"), rank)
-        .join(EventRow, EventRow.id == DeliveryRow.event_id)
-        .where(
+    return _first_per_node(
+        session,
+        (
             DeliveryRow.sink == sink,
             DeliveryRow.status == DeliveryStatus.DELIVERED,
             EventRow.kind.in_([str(k) for k in kinds]),
-        )
+        ),
+        (EventRow.created_at.desc(), DeliveryRow.id.desc()),
+    )
+
+
+def _first_per_node(session: Session, where: tuple, order_by: tuple) -> list[OutboxEvent]:
+    """Of the deliveries matching ``where``, the first of each node in ``order_by``, oldest event first."""
+    rank = func.row_number().over(partition_by=EventRow.node_id, order_by=order_by).label("rank")
+    ranked = (
+        select(DeliveryRow.id.label("delivery_id"), rank)
+        .join(EventRow, EventRow.id == DeliveryRow.event_id)
+        .where(*where)
         .subquery()
     )
     rows = session.execute(
@@ -177,13 +168,13 @@ def latest_delivered(session: Session, sink: str, kinds: Iterable[str]) -> list[
         .join(EventRow, EventRow.id == DeliveryRow.event_id)
         .join(ranked, ranked.c.delivery_id == DeliveryRow.id)
         .where(ranked.c.rank == 1)
-        .order_by(EventRow.node_id)
+        .order_by(EventRow.created_at, DeliveryRow.id)
     ).all()
     return [_outbox_event(delivery, event) for delivery, event in rows]
 
 
 def events_of_kind(session: Session, kind: str, *, node_id: str | None = None, newest_first: bool = True) -> Sequence[EventRow]:
-    """Events of one kind (optionally of one node), newest first."""
+    """Events of one kind (optionally of one node), newest first unless told otherwise."""
     query = select(EventRow).where(EventRow.kind == str(kind))
     if node_id is not None:
         query = query.where(EventRow.node_id == node_id)
