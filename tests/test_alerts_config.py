@@ -109,3 +109,14 @@ def test_backoff_cap_below_base_is_refused():
     with pytest.raises(ValueError, match="backoff_cap_s"):
         AlertingSettings.model_validate(
             {"sinks": [{"type": "mqtt", "name": "m", "host": "h", "backoff_base_s": 10, "backoff_cap_s": 1}]})
+
+
+def test_the_example_in_docs_alerting_md_is_a_valid_config(tmp_path):
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "alerting.md").read_text()
+    example = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "gateway.toml"
+    path.write_text(example + '\n[[nodes]]\nid = "n"\nurl = "loop://"\n')
+    alerting = load_settings(path).alerting
+    assert [s.type for s in alerting.sinks] == ["webhook", "alertmanager", "slack", "mqtt"]
