@@ -149,8 +149,10 @@ async function renderNode(node) {
   }
   if (latest.axial_mm !== null && latest.angle_deg !== null) {
     estimate.hidden = false;
-    estimate.textContent = `Estimated defect: ${latest.axial_mm.toFixed(0)} mm from the Tx ring, ` +
-      `${latest.angle_deg.toFixed(0)}° (DI ${fmt(latest.peak_di)})`;
+    const flagged = node.state === "damage" || node.state === "suspected";
+    estimate.textContent = `${flagged ? "Estimated defect" : "Map peak (below threshold)"}: ` +
+      `${latest.axial_mm.toFixed(0)} mm from the Tx ring, ${latest.angle_deg.toFixed(0)}° (DI ${fmt(latest.peak_di)})`;
+    estimate.classList.toggle("flagged", flagged);
     estimate.dataset.axialMm = latest.axial_mm;
     estimate.dataset.angleDeg = latest.angle_deg;
   } else {

@@ -1,0 +1,95 @@
+"""The dashboard in headless Chromium against the running API on the gateway-filled fleet.
+
+Skips where Chromium is missing (a developer's laptop without root); fails instead with CI=true.
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from api_fixtures import DAMAGED_NODE, QUIET_NODES, Api, api, in_ci  # noqa: F401 (fixture)
+
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(180)]
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+WAIT_MS = 30_000
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not CHROMIUM.exists() and shutil.which("chromium") is None:
+        message = "headless Chromium not installed (scripts/ensure-chromium.sh installs it)"
+        if in_ci():
+            pytest.fail(message)
+        pytest.skip(message)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+@pytest.fixture
+def page(browser):
+    context = browser.new_context()
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    yield page
+    context.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+def test_damaged_node_shows_as_damaged_with_its_map_and_marked_defect(api: Api, page):
+    page.goto(f"{api.base_url}/#key={api.keys.viewer}")
+    row_state = page.locator(f'#fleet-table tr[data-node="{DAMAGED_NODE}"] .state')
+    row_state.wait_for(timeout=WAIT_MS)
+    assert row_state.inner_text() == "damage"
+    card = page.locator(f'.node-card[data-node="{DAMAGED_NODE}"]')
+    assert "damage" in card.get_attribute("class")
+    heatmap = card.locator("img.heatmap")
+    page.wait_for_function(
+        "img => img.complete && img.naturalWidth > 0", arg=heatmap.element_handle(), timeout=WAIT_MS
+    )
+    assert heatmap.is_visible()
+    latest = api.client(api.keys.viewer).get(f"/api/v1/nodes/{DAMAGED_NODE}/detections/latest").json()
+    assert heatmap.get_attribute("data-measurement-id") == str(latest["measurement_id"])
+    estimate = card.locator(".estimate")
+    assert estimate.is_visible()
+    assert f"{latest['axial_mm']:.0f} mm" in estimate.inner_text()
+    assert f"{latest['angle_deg']:.0f}°" in estimate.inner_text()
+    assert card.locator("svg.trend polyline.peak").count() == 1
+    assert card.locator("svg.trend polyline.threshold").count() == 1
+    assert "Baseline in use: measurement" in card.locator(".baseline").inner_text()
+    # The key went into local storage and out of the address bar.
+    assert "key=" not in page.url
+
+
+def test_quiet_nodes_are_not_shown_damaged(api: Api, page):
+    page.goto(f"{api.base_url}/#key={api.keys.viewer}")
+    for node in QUIET_NODES:
+        state = page.locator(f'#fleet-table tr[data-node="{node}"] .state')
+        state.wait_for(timeout=WAIT_MS)
+        assert state.inner_text() != "damage"
+
+
+def test_without_a_key_the_page_asks_for_one_and_then_loads(api: Api, page):
+    page.goto(f"{api.base_url}/")
+    page.locator("#key-form").wait_for(state="visible", timeout=WAIT_MS)
+    page.fill("#key-input", "psk_wrong")
+    page.click("#key-form button[type=submit]")
+    page.locator("#key-error").wait_for(state="visible", timeout=WAIT_MS)
+    assert "refused" in page.locator("#key-error").inner_text()
+    page.fill("#key-input", api.keys.viewer)
+    page.click("#key-form button[type=submit]")
+    page.locator(f'#fleet-table tr[data-node="{DAMAGED_NODE}"]').wait_for(timeout=WAIT_MS)
+    assert page.locator("#key-form").is_hidden()
