@@ -22,7 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     deliver = sub.add_parser("deliver", help="send the outbox to the configured sinks until stopped")
     deliver.add_argument("--config", required=True, help="the gateway TOML config")
-    deliver.add_argument("--no-outages", action="store_true", help="do not raise node_offline/node_online events")
+    deliver.add_argument("--no-watch", action="store_true",
+                         help="only deliver: raise no node_offline/node_online or baseline_changed events")
     args = parser.parse_args(argv)
 
     from gateway.config import ConfigError, load_settings
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    delivery = AlertDelivery(settings.alerting, database, stop=stop, watch_outages=not args.no_outages)
+    delivery = AlertDelivery(settings.alerting, database, stop=stop, watch_fleet=not args.no_watch)
     delivery.start()
     logging.getLogger("pipesentry.alerts").info("delivering to %d sink(s)", len(delivery.sink_workers))
     while not stop.wait(1.0):  # signal handlers run between waits

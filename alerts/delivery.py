@@ -1,4 +1,4 @@
-"""The delivery worker: one thread per sink sends the outbox to it; one thread watches node outages.
+"""The delivery worker: one thread per sink sends the outbox to it; one thread watches for outages and baseline changes.
 
 A sink that is down, slow or gone only ever holds up its own thread, never measurement,
 storage or the other sinks. Per sink and node, events go out in the order they were
@@ -32,6 +32,7 @@ from alerts.config import (
 from alerts.errors import DeliveryFailed, EndpointGone
 from alerts.events import EventKind, sink_disabled_event
 from alerts.mqtt import MqttTransport
+from alerts.baseline_watch import check_baseline_changes
 from alerts.outages import check_outages
 from alerts.outbox import (
     OutboxEvent,
@@ -54,7 +55,7 @@ log = logging.getLogger("pipesentry.alerts")
 
 MAX_ATTEMPTS_PER_PASS = 20  # keeps heartbeats regular when many nodes have something due
 LEASE_MARGIN_S = 1.0
-OUTAGES = "alerts-outages"
+WATCH = "alerts-watch"
 
 
 class SinkTransport(Protocol):
@@ -258,8 +259,9 @@ def _loop(name: str, one_pass: Callable[[], float], *, stop: threading.Event, he
             break
 
 
-class OutageWatcher:
-    """Raises node_offline / node_online events on a schedule (see ``alerts.outages``)."""
+class FleetWatcher:
+    """Raises node_offline/node_online and baseline_changed events on a schedule (``alerts.outages``,
+    ``alerts.baseline_watch``): facts found in the database rather than reported by a worker."""
 
     def __init__(
         self,
@@ -276,7 +278,7 @@ class OutageWatcher:
         self.heartbeats = heartbeats
         self.clock = clock
         self.watching_since = clock()
-        self.thread = threading.Thread(target=self.run, name=OUTAGES, daemon=True)
+        self.thread = threading.Thread(target=self.run, name=WATCH, daemon=True)
 
     @property
     def interval_s(self) -> float:
@@ -286,19 +288,21 @@ class OutageWatcher:
         return 3 * self.interval_s + 60.0
 
     def run(self) -> None:
-        _loop(OUTAGES, self.check_once, stop=self.stop, heartbeats=self.heartbeats, retry_s=self.interval_s)
+        _loop(WATCH, self.check_once, stop=self.stop, heartbeats=self.heartbeats, retry_s=self.interval_s)
 
     def check_once(self) -> float:
-        """Add the outage events due now; returns seconds until the next check."""
+        """Add the outage and baseline events due now; returns seconds until the next check."""
+        now = self.clock()
         with self.database.write() as session:
-            added = check_outages(session, self.alerting, now=self.clock(), watching_since=self.watching_since)
+            added = check_outages(session, self.alerting, now=now, watching_since=self.watching_since)
+            added += check_baseline_changes(session, self.alerting, now=now)
         for event in added:
             log.warning("alerts: %s", event.payload["summary"], extra={"event_kind": event.kind})
         return self.interval_s
 
 
 class AlertDelivery:
-    """All of alerting in the gateway: a SinkWorker per configured sink and the OutageWatcher."""
+    """All of alerting in the gateway: a SinkWorker per configured sink and the FleetWatcher."""
 
     def __init__(
         self,
@@ -308,20 +312,20 @@ class AlertDelivery:
         stop: threading.Event,
         heartbeats: Beats | None = None,
         transport_factory: Callable[[AnySinkSettings, Database], SinkTransport] = make_transport,
-        watch_outages: bool = True,
+        watch_fleet: bool = True,
     ) -> None:
         self.sink_workers = [
             SinkWorker(alerting, sink, transport_factory(sink, database), database, stop=stop, heartbeats=heartbeats)
             for sink in alerting.sinks
         ]
-        self.outages = (
-            OutageWatcher(alerting, database, stop=stop, heartbeats=heartbeats) if watch_outages else None
+        self.watcher = (
+            FleetWatcher(alerting, database, stop=stop, heartbeats=heartbeats) if watch_fleet else None
         )
 
     @property
     def threads(self) -> list[threading.Thread]:
         threads = [w.thread for w in self.sink_workers]
-        return threads + ([self.outages.thread] if self.outages is not None else [])
+        return threads + ([self.watcher.thread] if self.watcher is not None else [])
 
     def start(self) -> None:
         for thread in self.threads:
@@ -335,6 +339,6 @@ class AlertDelivery:
 
     def stall_limits_s(self) -> dict[str, float]:
         limits = {w.name: w.stall_limit_s() for w in self.sink_workers}
-        if self.outages is not None:
-            limits[OUTAGES] = self.outages.stall_limit_s()
+        if self.watcher is not None:
+            limits[WATCH] = self.watcher.stall_limit_s()
         return limits

@@ -37,7 +37,7 @@ def test_a_sink_that_hangs_blocks_neither_the_other_sinks_nor_writers_and_ends_d
     try:
         settings = alerting(hook("down", down.url, timeout_s=0.2, max_attempts=2), hook("up", up.url))
         events = put_state_events(outbox_db, settings)
-        delivery = AlertDelivery(settings, outbox_db, stop=stop, watch_outages=False)
+        delivery = AlertDelivery(settings, outbox_db, stop=stop, watch_fleet=False)
         delivery.start()
         wait_until(lambda: statuses(outbox_db, "up") == [DeliveryStatus.DELIVERED] * len(events), 20, 0.05,
                    what="the healthy sink has everything")

@@ -1,4 +1,4 @@
-"""Node reachability alerts: offline after the configured time, once per outage; online when it answers again."""
+"""Facts the gateway finds in the database: node outages (offline, back online) and new baselines."""
 from __future__ import annotations
 
 from datetime import timedelta
@@ -42,3 +42,28 @@ def test_the_gateways_own_downtime_does_not_count_against_the_nodes(outbox_db):
     restarted = T0 + timedelta(hours=5)
     assert check(outbox_db, restarted + timedelta(minutes=1), watching_since=restarted) == []
     assert check(outbox_db, restarted + timedelta(minutes=11), watching_since=restarted) == [EventKind.NODE_OFFLINE] * 3
+
+
+def test_every_new_baseline_gets_one_event_whoever_set_it(outbox_db):
+    from alerts.baseline_watch import check_baseline_changes
+    from db.baselines import set_active_baseline
+    from db.models import MeasurementKind
+
+    from db_fixtures import store_sample
+
+    with outbox_db.write() as session:
+        first = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=1)
+        second = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=2)
+        set_active_baseline(session, "node-a", first.id, created_by="gateway", reason="commissioning", now=T0)
+        set_active_baseline(session, "node-a", second.id, created_by="operator:alice", reason="pipe repaired",
+                            now=T0 + timedelta(hours=1))
+    now = T0 + timedelta(hours=2)
+    with outbox_db.write() as session:
+        added = check_baseline_changes(session, SETTINGS, now=now)
+        assert check_baseline_changes(session, SETTINGS, now=now) == []  # one event per baseline row
+    assert [e.kind for e in added] == [EventKind.BASELINE_CHANGED] * 2
+    latest = added[-1].payload
+    assert latest["measurement_id"] == second.id and latest["previous_measurement_id"] == first.id
+    assert latest["created_by"] == "operator:alice" and latest["occurred_at"] == (T0 + timedelta(hours=1)).isoformat()
+    with outbox_db.write() as session:  # a month later, old baselines are not looked at again
+        assert check_baseline_changes(session, SETTINGS, now=T0 + timedelta(days=30)) == []
