@@ -106,9 +106,9 @@ DEFAULT_THRESHOLDS: dict[tuple[str, str], float] = {
     ("multipath", "analytic"): 0.02,
     ("multipath", "envelope"): 0.02,
     ("multipath", "squared"): 0.005,
-    ("paper", "analytic"): 0.01,
-    ("paper", "envelope"): 0.01,
-    ("paper", "squared"): 0.01,
+    ("paper", "analytic"): 0.001,
+    ("paper", "envelope"): 0.001,
+    ("paper", "squared"): 0.001,
 }
 
 

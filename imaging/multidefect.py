@@ -4,7 +4,10 @@ The echoes of point scatterers at the positions found so far are modelled on eve
 as one burst per modelled path (imaging/paths.py), each with a free amplitude and carrier
 phase (a burst and its quadrature twin), fitted jointly to that receiver's residual by least
 squares and subtracted from it. The next peak is then sought on the cleaned residual, away from the peaks
-already found, until it falls below the detection threshold or ``max_defects`` is reached.
+already found, until it falls below the detection threshold, or below MIN_RELATIVE_DI of the
+first defect's DI (what the fit leaves of a strong defect is not a new one), or
+``max_defects`` is reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with
+the others' echoes removed.
 """
 from __future__ import annotations
 
@@ -23,6 +26,8 @@ from imaging.paths import PathModel, scalar_paths
 from imaging.timing import MM_PER_M
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
+MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
+REFINE_RADIUS_MM = 20.0  # the refinement pass may move an estimate this far at most
 
 
 class MultiDefectError(ValueError):
@@ -160,7 +165,9 @@ def find_defects(
             break
         i, j = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
         estimate = refine_peak(di_map, int(i), int(j))
-        if estimate.di < threshold:
+        # What the echo fit leaves of a strong defect (the model is not the pipe) can cross an
+        # absolute threshold; later defects must also be a fair fraction of the first.
+        if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
         severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
         found.append(Found(estimate, di_map, severity))
@@ -184,7 +191,7 @@ def _refine(found, fits, original, image, reference, model, power, rx_mask, circ
     for i, item in enumerate(found):
         others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(original))
         values, di_map = image(original - others)
-        near = exclusion_mask(di_map.grid, item.estimate.axial_mm, item.estimate.angle_deg, exclusion_mm,
+        near = exclusion_mask(di_map.grid, item.estimate.axial_mm, item.estimate.angle_deg, REFINE_RADIUS_MM,
                               circumference_mm)
         candidates = np.where(near, di_map.pixels, -np.inf)
         a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)

@@ -4,7 +4,7 @@ Real features (envelope, squared), an incoherent sum:
     DI(pixel) = sum_m sum_p w_mp^q F_m[k_mp] / sqrt(sum_m sum_p w_mp^(2q))
 Complex features (analytic), coherent within each group g of paths (a path family and one way
 round the pipe, imaging/paths.py ``coherence_groups``), groups added in power:
-    DI(pixel) = sqrt( sum_g |sum_{m, p in g} w_mp A_m[k_mp]|^2 / sum_{m, p in g} w_mp^2 )
+    DI(pixel) = sqrt( sum_g |sum_{m, p in g} w_mp A_m[k_mp]|^2 / sum_{m, p in g} w_mp^2 / G )
 
 over healthy receivers m and paths p, where k_mp = round((L_mp / c - t0) fs) is the sample at
 which path p's burst starts, F/A the normalised feature (imaging/features.py), w the path's
@@ -13,10 +13,12 @@ matched-filter (generalised likelihood ratio) statistic of a point scatterer at 
 coherent form has one unknown complex amplitude per group, because a defect's scattered phase
 is nearly the same for every receiver reached by the same route but differs between forward,
 back and sideways scattering, and a route the data lack (e.g. an end that does not reflect)
-then costs nothing at the true position. Noise alone gives a map of about the same spread
-everywhere, so the arg-max is the position estimate and its value can be compared with a
+then costs nothing at the true position. G, the model's number of groups, makes noise alone
+score the same whatever the model (each group adds one complex unknown: DI^2 of noise is a
+mean of G terms, not a sum), so one threshold serves pipes with and without reflecting ends.
+Noise alone gives a map of about the same spread everywhere, so the arg-max is the position estimate and its value can be compared with a
 fixed threshold. With ``normalise="amplitude"`` the map is the least-squares scatterer
-strength instead: DI / sqrt(sum of all w^(2q)) (coherent) or the weighted sum / sum w^(2q).
+strength instead: DI sqrt(G) / sqrt(sum of all w^2) (coherent) or the weighted sum / sum w^(2q).
 Samples outside the record contribute nothing.
 
 Fast path: for each receiver the (sample index, weight) of every path and pixel is computed
@@ -55,8 +57,8 @@ def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str) -> np.nd
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
         power = _safe_divide(groups.real**2 + groups.imag**2, weight_sq)
-        snr = np.sqrt(np.sum(power, axis=0))
-        return snr if normalise == "snr" else _safe_divide(snr, np.sqrt(total_sq))
+        snr = np.sqrt(np.sum(power, axis=0) / groups.shape[0])
+        return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
     weighted = np.sum(groups, axis=0)
     return _safe_divide(weighted, np.sqrt(total_sq) if normalise == "snr" else total_sq)
 
@@ -199,8 +201,8 @@ def literal_multipath_pixels(
             if total_sq <= 0:
                 continue
             if coherent:
-                snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq) if q > 0))
-                out[i, j] = snr if normalise == "snr" else snr / math.sqrt(total_sq)
+                snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq) if q > 0) / n_fam)
+                out[i, j] = snr if normalise == "snr" else snr * math.sqrt(n_fam) / math.sqrt(total_sq)
             else:
                 weighted = sum(s.real for s in sums)
                 out[i, j] = weighted / (math.sqrt(total_sq) if normalise == "snr" else total_sq)
