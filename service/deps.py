@@ -1,13 +1,12 @@
 """Injected dependencies of the routes: the database, sessions, and the caller's API key and role."""
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy.orm import Session
 
 from db.api_keys import authenticate_api_key
 from db.database import Database
@@ -47,22 +46,10 @@ def get_database(request: Request) -> Database:
 DatabaseDep = Annotated[Database, Depends(get_database)]
 
 
-def read_session(database: DatabaseDep) -> Iterator[Session]:
-    """One read transaction per request (a consistent snapshot while the gateway writes)."""
-    with database.session() as session:
-        yield session
-
-
-ReadSession = Annotated[Session, Depends(read_session)]
-
-
-def write_session(database: DatabaseDep) -> Iterator[Session]:
-    """One write transaction per request: all of the change is committed, or none of it."""
-    with database.write() as session:
-        yield session
-
-
-WriteSession = Annotated[Session, Depends(write_session)]
+# Routes open their session inside their own worker thread (``with database.session()``)
+# instead of through a yield-dependency: a dependency's session would hold a pooled
+# connection across thread hops, and under load the threads waiting for a connection can
+# starve the ones holding one (a deadlock until the pool times out).
 
 
 def presented_token(
@@ -76,11 +63,16 @@ def presented_token(
     return token
 
 
-def current_caller(token: Annotated[str, Depends(presented_token)], session: ReadSession) -> Caller:
-    row = authenticate_api_key(session, token) if len(token) <= MAX_TOKEN_CHARS else None
-    if row is None:
+def current_caller(token: Annotated[str, Depends(presented_token)], database: DatabaseDep) -> Caller:
+    caller = None
+    if len(token) <= MAX_TOKEN_CHARS:
+        with database.session() as session:
+            row = authenticate_api_key(session, token)
+            if row is not None:
+                caller = Caller(key_id=row.id, name=row.name, role=row.role)
+    if caller is None:
         raise ApiProblem(UNAUTHORIZED, "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"})
-    return Caller(key_id=row.id, name=row.name, role=row.role)
+    return caller
 
 
 def require(role: Role) -> Callable[[Caller], Caller]:

@@ -10,7 +10,8 @@ from db.measurements import get_measurement
 from db.models import DetectionRow, MeasurementKind, MeasurementRow, NodeState
 from db.nodes import get_node
 from db.pagination import keyset_page
-from db.queries import detection_for, di_maps_for, measurements_page
+from db.errors import NotFound
+from db.queries import detection_for, di_maps_for, latest_detection, measurements_page
 from service import schemas
 
 
@@ -97,3 +98,12 @@ def detection_list(
     return schemas.DetectionPage(
         items=[schemas.Detection.model_validate(d) for d in page.items], next_cursor=page.next_cursor
     )
+
+
+def latest_detection_of(session: Session, node_id: str) -> schemas.Detection:
+    """The node's latest verdict; ``NotFound`` for an unknown node or one without a monitor measurement yet."""
+    get_node(session, node_id)
+    row = latest_detection(session, node_id)
+    if row is None:
+        raise NotFound(f"node {node_id!r} has no detection yet")
+    return schemas.Detection.model_validate(row)

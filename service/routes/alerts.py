@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, Query
 
 from db.models import Severity
 from service import alerts, schemas
-from service.deps import Operator, ReadSession, WriteSession, require_viewer
+from service.deps import DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
 from service.routes.common import DEFAULT_LIMIT, Cursor, Limit
 
@@ -18,26 +18,30 @@ router = APIRouter(prefix="/alerts", tags=["alerts"], dependencies=[Depends(requ
 
 @router.get("", responses=problem_responses(400), summary="Alerts newest first, filtered by status/node/severity")
 def list_alerts(
-    session: ReadSession,
+    database: DatabaseDep,
     status: schemas.AlertStatus | None = None,
     node_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
     severity: Severity | None = None,
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,
 ) -> schemas.AlertPage:
-    return alerts.alert_list(session, status=status, node_id=node_id, severity=severity, limit=limit, cursor=cursor)
+    with database.session() as session:
+        return alerts.alert_list(session, status=status, node_id=node_id, severity=severity, limit=limit, cursor=cursor)
 
 
 @router.get("/{alert_id}", responses=problem_responses(404))
-def get_alert(alert_id: uuid.UUID, session: ReadSession) -> schemas.Alert:
-    return alerts.get_alert(session, alert_id)
+def get_alert(alert_id: uuid.UUID, database: DatabaseDep) -> schemas.Alert:
+    with database.session() as session:
+        return alerts.get_alert(session, alert_id)
 
 
 @router.post("/{alert_id}/acknowledge", responses=problem_responses(404), summary="Acknowledge (operator)")
-def acknowledge_alert(alert_id: uuid.UUID, caller: Operator, session: WriteSession) -> schemas.Alert:
-    return alerts.acknowledge(session, alert_id, who=caller.name)
+def acknowledge_alert(alert_id: uuid.UUID, caller: Operator, database: DatabaseDep) -> schemas.Alert:
+    with database.write() as session:
+        return alerts.acknowledge(session, alert_id, who=caller.name)
 
 
 @router.post("/{alert_id}/resolve", responses=problem_responses(404), summary="Resolve (operator)")
-def resolve_alert(alert_id: uuid.UUID, caller: Operator, session: WriteSession) -> schemas.Alert:
-    return alerts.resolve(session, alert_id, who=caller.name)
+def resolve_alert(alert_id: uuid.UUID, caller: Operator, database: DatabaseDep) -> schemas.Alert:
+    with database.write() as session:
+        return alerts.resolve(session, alert_id, who=caller.name)

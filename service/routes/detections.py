@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, Query
 
 from db.models import NodeState
 from service import history, schemas
-from service.deps import ReadSession, require_viewer
+from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
 from service.routes.common import DEFAULT_LIMIT, Cursor, End, Limit, Start
 
@@ -17,7 +17,7 @@ router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depe
 
 @router.get("", responses=problem_responses(400, 404))
 def list_detections(
-    session: ReadSession,
+    database: DatabaseDep,
     node_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
     state: NodeState | None = None,
     start: Start = None,
@@ -25,5 +25,6 @@ def list_detections(
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,
 ) -> schemas.DetectionPage:
-    return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
-                                  cursor=cursor)
+    with database.session() as session:
+        return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
+                                      cursor=cursor)

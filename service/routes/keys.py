@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, Path, status
 
 from db.api_keys import create_api_key, list_api_keys, revoke_api_key
 from service import schemas
-from service.deps import Admin, ReadSession, WriteSession, require_admin
+from service.deps import Admin, DatabaseDep, require_admin
 from service.problems import problem_responses
 
 router = APIRouter(prefix="/keys", tags=["keys"], dependencies=[Depends(require_admin)],
@@ -17,16 +17,19 @@ KeyId = Annotated[int, Path(ge=1, le=2**62)]
 
 
 @router.get("")
-def list_keys(session: ReadSession) -> list[schemas.ApiKey]:
-    return [schemas.ApiKey.model_validate(k) for k in list_api_keys(session)]
+def list_keys(database: DatabaseDep) -> list[schemas.ApiKey]:
+    with database.session() as session:
+        return [schemas.ApiKey.model_validate(k) for k in list_api_keys(session)]
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses=problem_responses(413))
-def create_key(body: schemas.ApiKeyCreate, _: Admin, session: WriteSession) -> schemas.ApiKeyCreated:
-    row, token = create_api_key(session, name=body.name, role=body.role)
-    return schemas.ApiKeyCreated(**schemas.ApiKey.model_validate(row).model_dump(), token=token)
+def create_key(body: schemas.ApiKeyCreate, _: Admin, database: DatabaseDep) -> schemas.ApiKeyCreated:
+    with database.write() as session:
+        row, token = create_api_key(session, name=body.name, role=body.role)
+        return schemas.ApiKeyCreated(**schemas.ApiKey.model_validate(row).model_dump(), token=token)
 
 
 @router.delete("/{key_id}", responses=problem_responses(404), summary="Revoke a key (idempotent; kept for audit)")
-def revoke_key(key_id: KeyId, _: Admin, session: WriteSession) -> schemas.ApiKey:
-    return schemas.ApiKey.model_validate(revoke_api_key(session, key_id))
+def revoke_key(key_id: KeyId, _: Admin, database: DatabaseDep) -> schemas.ApiKey:
+    with database.write() as session:
+        return schemas.ApiKey.model_validate(revoke_api_key(session, key_id))

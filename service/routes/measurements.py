@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 
 from db.models import MapSource
 from service import history, maps, schemas, traces
-from service.deps import ReadSession, require_viewer
+from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
 from service.routes.common import MeasurementId
 
@@ -23,54 +23,61 @@ def _binary(media_type: str, description: str) -> dict:
 
 
 @router.get("/{measurement_id}")
-def get_measurement_detail(measurement_id: MeasurementId, session: ReadSession) -> schemas.Measurement:
-    return history.measurement_detail(session, measurement_id)
+def get_measurement_detail(measurement_id: MeasurementId, database: DatabaseDep) -> schemas.Measurement:
+    with database.session() as session:
+        return history.measurement_detail(session, measurement_id)
 
 
 @router.get("/{measurement_id}/traces.npz", response_class=Response,
             responses={**_binary("application/octet-stream", "the .npz interchange file (docs/formats.md)"), **PRUNED})
-def get_traces_npz(measurement_id: MeasurementId, session: ReadSession) -> Response:
-    return Response(
-        traces.traces_npz(session, measurement_id),
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="measurement-{measurement_id}.npz"'},
-    )
+def get_traces_npz(measurement_id: MeasurementId, database: DatabaseDep) -> Response:
+    with database.session() as session:
+        return Response(
+            traces.traces_npz(session, measurement_id),
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": f'attachment; filename="measurement-{measurement_id}.npz"'},
+        )
 
 
 @router.get("/{measurement_id}/traces.csv", response_class=Response,
             responses={**_binary("text/csv", "the CSV form (docs/formats.md)"), **PRUNED})
-def get_traces_csv(measurement_id: MeasurementId, session: ReadSession) -> Response:
-    return Response(
-        traces.traces_csv(session, measurement_id),
-        media_type="text/csv",
-        headers={"Content-Disposition": f'attachment; filename="measurement-{measurement_id}.csv"'},
-    )
+def get_traces_csv(measurement_id: MeasurementId, database: DatabaseDep) -> Response:
+    with database.session() as session:
+        return Response(
+            traces.traces_csv(session, measurement_id),
+            media_type="text/csv",
+            headers={"Content-Disposition": f'attachment; filename="measurement-{measurement_id}.csv"'},
+        )
 
 
 @router.get("/{measurement_id}/traces", responses=PRUNED,
             summary="Raw traces as JSON, in volts (codes x volts_per_code) or raw ADC codes")
 def get_traces(
     measurement_id: MeasurementId,
-    session: ReadSession,
+    database: DatabaseDep,
     units: Annotated[schemas.TraceUnits, Query()] = schemas.TraceUnits.VOLTS,
 ) -> schemas.Traces:
-    return traces.traces_json(session, measurement_id, units)
+    with database.session() as session:
+        return traces.traces_json(session, measurement_id, units)
 
 
 @router.get("/{measurement_id}/di-maps", summary="The measurement's DI maps (node's and gateway's), no pixels")
-def list_di_maps(measurement_id: MeasurementId, session: ReadSession) -> list[schemas.DiMapSummary]:
-    return history.measurement_detail(session, measurement_id).di_maps
+def list_di_maps(measurement_id: MeasurementId, database: DatabaseDep) -> list[schemas.DiMapSummary]:
+    with database.session() as session:
+        return history.measurement_detail(session, measurement_id).di_maps
 
 
 @router.get("/{measurement_id}/di-maps/{source}.png", response_class=Response,
             responses=_binary("image/png", "heatmap: axial distance x angle, the estimated defect marked"))
 def get_di_map_png(measurement_id: MeasurementId, source: MapSource, request: Request,
-                   session: ReadSession) -> Response:
-    renderer: maps.HeatmapRenderer = request.app.state.heatmaps
-    return Response(renderer.png(session, measurement_id, source), media_type="image/png",
-                    headers={"Cache-Control": "private, max-age=3600"})
+                   database: DatabaseDep) -> Response:
+    with database.session() as session:
+        renderer: maps.HeatmapRenderer = request.app.state.heatmaps
+        return Response(renderer.png(session, measurement_id, source), media_type="image/png",
+                        headers={"Cache-Control": "private, max-age=3600"})
 
 
 @router.get("/{measurement_id}/di-maps/{source}", summary="A DI map's grid, pixels and estimated defect")
-def get_di_map(measurement_id: MeasurementId, source: MapSource, session: ReadSession) -> schemas.DiMap:
-    return maps.map_json(session, measurement_id, source)
+def get_di_map(measurement_id: MeasurementId, source: MapSource, database: DatabaseDep) -> schemas.DiMap:
+    with database.session() as session:
+        return maps.map_json(session, measurement_id, source)

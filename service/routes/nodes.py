@@ -3,12 +3,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Query, status
 
-from db.errors import NotFound
 from db.models import MeasurementKind, NodeState
-from db.nodes import get_node
-from db.queries import latest_detection
 from service import baselines, fleet, history, schemas
-from service.deps import Operator, ReadSession, WriteSession, require_viewer
+from service.deps import DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
 from service.routes.common import DEFAULT_LIMIT, BaselineId, Cursor, End, Limit, NodeId, Start
 
@@ -17,20 +14,22 @@ router = APIRouter(prefix="/nodes", tags=["nodes"], dependencies=[Depends(requir
 
 
 @router.get("", summary="All nodes: identity, health, state, latest DI peak and threshold, baseline")
-def list_nodes(session: ReadSession) -> list[schemas.Node]:
-    return fleet.node_views(session)
+def list_nodes(database: DatabaseDep) -> list[schemas.Node]:
+    with database.session() as session:
+        return fleet.node_views(session)
 
 
 @router.get("/{node_id}", responses=problem_responses(404))
-def get_node_detail(node_id: NodeId, session: ReadSession) -> schemas.Node:
-    return fleet.node_view(session, node_id)
+def get_node_detail(node_id: NodeId, database: DatabaseDep) -> schemas.Node:
+    with database.session() as session:
+        return fleet.node_view(session, node_id)
 
 
 @router.get("/{node_id}/measurements", responses=problem_responses(400, 404),
             summary="A node's measurements in [start, end), newest first by default, cursor-paged")
 def list_measurements(
     node_id: NodeId,
-    session: ReadSession,
+    database: DatabaseDep,
     start: Start = None,
     end: End = None,
     kind: MeasurementKind | None = None,
@@ -38,52 +37,54 @@ def list_measurements(
     cursor: Cursor = None,
     order: str = Query("desc", pattern="^(asc|desc)$", description="desc: newest first"),
 ) -> schemas.MeasurementPage:
-    return history.measurement_list(session, node_id, start=start, end=end, kind=kind, limit=limit, cursor=cursor,
-                                    newest_first=order == "desc")
+    with database.session() as session:
+        return history.measurement_list(session, node_id, start=start, end=end, kind=kind, limit=limit, cursor=cursor,
+                                        newest_first=order == "desc")
 
 
 @router.get("/{node_id}/detections", responses=problem_responses(400, 404),
             summary="A node's detections and defect estimates, latest first")
 def list_node_detections(
     node_id: NodeId,
-    session: ReadSession,
+    database: DatabaseDep,
     state: NodeState | None = None,
     start: Start = None,
     end: End = None,
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,
 ) -> schemas.DetectionPage:
-    return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
-                                  cursor=cursor)
+    with database.session() as session:
+        return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
+                                      cursor=cursor)
 
 
 @router.get("/{node_id}/detections/latest", responses=problem_responses(404),
             summary="The node's latest verdict (404 before its first monitor measurement)")
-def get_latest_detection(node_id: NodeId, session: ReadSession) -> schemas.Detection:
-    get_node(session, node_id)
-    row = latest_detection(session, node_id)
-    if row is None:
-        raise NotFound(f"node {node_id!r} has no detection yet")
-    return schemas.Detection.model_validate(row)
+def get_latest_detection(node_id: NodeId, database: DatabaseDep) -> schemas.Detection:
+    with database.session() as session:
+        return history.latest_detection_of(session, node_id)
 
 
 @router.get("/{node_id}/baselines", responses=problem_responses(404),
             summary="Every baseline the node has had, newest first (who, when, why)")
-def list_baselines(node_id: NodeId, session: ReadSession) -> list[schemas.Baseline]:
-    return baselines.history(session, node_id)
+def list_baselines(node_id: NodeId, database: DatabaseDep) -> list[schemas.Baseline]:
+    with database.session() as session:
+        return baselines.history(session, node_id)
 
 
 @router.post("/{node_id}/baselines", status_code=status.HTTP_201_CREATED,
              responses=problem_responses(404, 409, 413), summary="Make a measurement a baseline (operator)")
 def create_baseline(
-    node_id: NodeId, body: schemas.BaselineCreate, caller: Operator, session: WriteSession
+    node_id: NodeId, body: schemas.BaselineCreate, caller: Operator, database: DatabaseDep
 ) -> schemas.Baseline:
-    return baselines.create(session, node_id, body, who=caller.name)
+    with database.write() as session:
+        return baselines.create(session, node_id, body, who=caller.name)
 
 
 @router.post("/{node_id}/baselines/{baseline_id}/activate", responses=problem_responses(404, 409, 413),
              summary="Make an earlier baseline the active one again (operator)")
 def activate_baseline(
-    node_id: NodeId, baseline_id: BaselineId, body: schemas.BaselineActivate, caller: Operator, session: WriteSession
+    node_id: NodeId, baseline_id: BaselineId, body: schemas.BaselineActivate, caller: Operator, database: DatabaseDep
 ) -> schemas.Baseline:
-    return baselines.activate(session, node_id, baseline_id, body.reason, who=caller.name)
+    with database.write() as session:
+        return baselines.activate(session, node_id, baseline_id, body.reason, who=caller.name)
