@@ -6,7 +6,6 @@ not start half-configured.
 """
 from __future__ import annotations
 
-import math
 import tomllib
 from pathlib import Path
 from typing import Literal
@@ -45,7 +44,9 @@ class ThresholdSettings(_Section):
 
     mode: Literal["absolute", "calibrated"] = "calibrated"
     absolute: float | None = Field(None, gt=0, description="threshold when mode = absolute")
-    calibration_count: int = Field(10, ge=2, description="K baseline-condition measurements for mode = calibrated")
+    calibration_count: int = Field(
+        10, ge=5, description="K baseline-condition measurements for mode = calibrated (fewer cannot bound a rare tail)"
+    )
     false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement, for the calibrated bound")
     hysteresis_count: int = Field(3, ge=1, description="M consecutive exceedances to flag damage, M below to clear")
 

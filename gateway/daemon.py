@@ -29,7 +29,10 @@ class Gateway:
         self.stop = threading.Event()
         self.heartbeats = Heartbeats()
         self.workers = [
-            NodeWorker(node, db, self.heartbeats, self.stop, backoff_max_s=settings.reopen_backoff_max_s)
+            NodeWorker(
+                node, db, self.heartbeats, self.stop, backoff_max_s=settings.reopen_backoff_max_s,
+                alerting=settings.alerting,
+            )
             for node in settings.nodes
         ]
         self._retention = threading.Thread(target=self._retention_loop, name=RETENTION, daemon=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 import threading
 import time
 from collections.abc import Callable
@@ -19,10 +20,12 @@ from db.baselines import active_baseline, set_active_baseline
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError, StorageUnavailable
-from db.measurements import get_measurement, load_traces, store_measurement
-from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, NodeState, Severity
+from db.measurements import add_event, store_measurement
+from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, NodeState
 from db.nodes import get_node, record_node_health, upsert_node
-from db.records import DetectionInput, DiMapInput, EventInput, MapGrid, NodeInfo, StateChangeInput
+from db.records import DiMapInput, MapGrid, NodeInfo, StateChangeInput
+from alerts.config import AlertingSettings
+from alerts.events import state_change_event
 from gateway.config import NodeSettings
 from gateway.assessment import BaselineLibrary, assess_settings, detection_input, run_assessment
 from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
@@ -39,14 +42,6 @@ from protocol.messages import ConfigureReply, InfoReply
 from sqlalchemy import func, select
 
 log = logging.getLogger("pipesentry.gateway")
-
-STATE_SEVERITY = {
-    NodeState.DAMAGE: Severity.CRITICAL,
-    NodeState.SUSPECTED: Severity.WARNING,
-    NodeState.NO_VALID_BASELINE: Severity.WARNING,
-    NodeState.OK: Severity.INFO,
-}
-
 
 @dataclass
 class Connection:
@@ -96,7 +91,7 @@ class NodeWorker:
         stop: threading.Event,
         *,
         backoff_max_s: float = 60.0,
-        sinks: tuple[str, ...] = (),
+        alerting: AlertingSettings | None = None,
         client_factory: Callable[..., NodeClient] = NodeClient,
     ) -> None:
         self.settings = settings
@@ -104,7 +99,7 @@ class NodeWorker:
         self.heartbeats = heartbeats
         self.stop = stop
         self.backoff_max_s = backoff_max_s
-        self.sinks = sinks
+        self.alerting = alerting or AlertingSettings()
         self.client_factory = client_factory
         self.counters = NodeCounters()
         self.conn: Connection | None = None
@@ -317,6 +312,9 @@ class NodeWorker:
             ).all()
             peaks = [float(p) for p in rows]
         value = threshold_for(settings, peaks)
+        if value is not None and settings.mode == "calibrated":
+            log.info("threshold calibrated: %.4g from %d baseline-condition peak DIs (median %.4g)",
+                     value, len(peaks), statistics.median(peaks))
         self._threshold_cache = (baseline_measurement_id, value)
         return value
 
@@ -394,7 +392,6 @@ class NodeWorker:
             new_state = new_flag.state
             change = StateChangeInput(prev_state, new_state) if new_state != prev_state else None
             detection = detection_input(result, new_state, threshold, library_ids)
-            events = [self._state_event(change, detection)] if change is not None else []
             row = store_measurement(
                 session,
                 self.settings.id,
@@ -412,8 +409,22 @@ class NodeWorker:
                 di_maps=maps,
                 detection=detection,
                 state_change=change,
-                events=events,
             )
+            if change is not None:
+                # In the same transaction as the state change it reports (the outbox).
+                event = state_change_event(
+                    self.alerting,
+                    node_id=self.settings.id,
+                    from_state=change.from_state.value,
+                    to_state=change.to_state.value,
+                    measurement_id=row.id,
+                    peak_di=detection.peak_di,
+                    threshold=threshold,
+                    axial_mm=detection.axial_mm,
+                    angle_deg=detection.angle_deg,
+                )
+                if event is not None:
+                    add_event(session, event, node_id=self.settings.id)
             record_node_health(session, self.settings.id, online=True, error_counters=node_errors)
             measurement_id = row.id
         self.flag = new_flag
@@ -428,23 +439,6 @@ class NodeWorker:
             threshold=threshold,
             axial_mm=detection.axial_mm,
             angle_deg=detection.angle_deg,
-        )
-
-    def _state_event(self, change: StateChangeInput, detection: DetectionInput) -> EventInput:
-        return EventInput(
-            kind="state_changed",
-            severity=STATE_SEVERITY.get(change.to_state, Severity.INFO),
-            payload={
-                "node_id": self.settings.id,
-                "from_state": change.from_state.value,
-                "to_state": change.to_state.value,
-                "peak_di": detection.peak_di,
-                "threshold": detection.threshold,
-                "axial_mm": detection.axial_mm,
-                "angle_deg": detection.angle_deg,
-                "defects": detection.defects,
-            },
-            sinks=self.sinks,
         )
 
 

@@ -96,8 +96,13 @@ def test_calibration_needs_two_readings():
         calibrated_threshold([1.0, math.nan], 1e-3)
 
 
+def test_fewer_than_five_calibration_readings_is_a_config_error():
+    with pytest.raises(ValueError, match="calibration_count"):
+        ThresholdSettings(mode="calibrated", calibration_count=3)
+
+
 def test_threshold_waits_for_k_calibration_readings():
-    s = ThresholdSettings(mode="calibrated", calibration_count=4)
-    assert threshold_for(s, [1.0, 1.1, 0.9]) is None
-    assert threshold_for(s, [1.0, 1.1, 0.9, 1.0]) > 1.1
+    s = ThresholdSettings(mode="calibrated", calibration_count=5)
+    assert threshold_for(s, [1.0, 1.1, 0.9, 1.0]) is None
+    assert threshold_for(s, [1.0, 1.1, 0.9, 1.0, 1.05]) > 1.1
     assert threshold_for(ThresholdSettings(mode="absolute", absolute=7.0), []) == 7.0
