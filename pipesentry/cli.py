@@ -4,6 +4,8 @@ from __future__ import annotations
 import typer
 
 from pipesentry.commands.analyze import analyze
+from pipesentry.commands.api import api
+from pipesentry.commands.apikey import apikey_app
 from pipesentry.commands.demo import demo
 from pipesentry.commands.gateway import gateway
 
@@ -23,6 +25,8 @@ def _root() -> None:
 app.command()(analyze)
 app.command()(demo)
 app.command()(gateway)
+app.command()(api)
+app.add_typer(apikey_app, name="apikey")
 
 try:  # the mock node registers itself once its package is in place
     from mocknode.cli import mock_node
