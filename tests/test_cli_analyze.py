@@ -3,7 +3,6 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 from imaging.formats import save_npz
@@ -57,7 +56,7 @@ def test_missing_file_exits_2_with_one_line(files):
 
 def test_mismatched_baseline_exits_2(files):
     base, _, d = files
-    short_base, short_cur = baseline_and_scatterer(200.0, 90.0, n_samples=4000)
+    _, short_cur = baseline_and_scatterer(200.0, 90.0, n_samples=4000)
     other = save_npz(short_cur, d / "short.npz")
     proc = run_cli("analyze", "--baseline", base, "--current", other, "--json")
     assert proc.returncode == 2 and proc.stdout == ""

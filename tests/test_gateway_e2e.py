@@ -1,7 +1,6 @@
 """The gateway daemon as a real process against mock nodes on pseudo-terminals, with a real SQLite file."""
 from __future__ import annotations
 
-import os
 import random
 import socket
 import sqlite3
