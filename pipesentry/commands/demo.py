@@ -1,16 +1,19 @@
-"""`pipesentry demo`: the README's main command — simulated nodes, the gateway, SQLite, damage arising.
+"""`pipesentry demo`: the README's main command — simulated nodes, the gateway, SQLite, the API, damage arising.
 
-Starts the mock nodes on pseudo-terminals and the gateway daemon as real processes, then
-follows the database and prints progress: measurements, state changes, and the estimated
-defect coordinates against the scenario's truth. Stops after ``--duration-s`` or on Ctrl-C.
+Starts the mock nodes on pseudo-terminals, the gateway daemon and the API (with a demo key)
+as real processes, prints the dashboard URL, then follows the database and prints progress:
+measurements, state changes, and the estimated defect coordinates against the scenario's
+truth. Stops after ``--duration-s`` or on Ctrl-C.
 """
 from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 from typing import Annotated
 
@@ -69,11 +72,43 @@ def _wait_for(predicate, timeout_s: float, what: str, children: list[Child]) -> 
     fail(f"timed out waiting for {what}")
 
 
+def _free_port(preferred: int) -> int:
+    """``preferred`` if it is free on 127.0.0.1, else one the kernel picks."""
+    for candidate in (preferred, 0):
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", candidate))
+            except OSError:
+                continue
+            return sock.getsockname()[1]
+    fail("no free TCP port on 127.0.0.1")
+
+
+def _http_ok(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(url, timeout=1) as response:
+            return response.status == 200
+    except OSError:
+        return False
+
+
+def _schema_ready(db_url: str) -> bool:
+    from db.database import open_database
+    from db.errors import SchemaOutOfDate, StorageError
+
+    try:
+        open_database(db_url, upgrade=False).dispose()
+    except (SchemaOutOfDate, StorageError):
+        return False
+    return True
+
+
 def demo(
     duration_s: Annotated[float, typer.Option(help="stop after this many seconds")] = 150.0,
     interval_s: Annotated[float, typer.Option(help="seconds between a node's measurements")] = 2.0,
     out_dir: Annotated[Path, typer.Option(help="where the database, config and logs go")] = Path("out/demo"),
     scenario: Annotated[Path, typer.Option(help="mock-node scenario (TOML)")] = DEMO_SCENARIO,
+    port: Annotated[int, typer.Option(help="API and dashboard port on 127.0.0.1 (another if taken)")] = 8000,
 ) -> None:
     """Run simulated nodes and the gateway on SQLite, and show damage being flagged as it arises."""
     from mocknode.scenario import ScenarioError, load_scenario
@@ -106,10 +141,23 @@ def demo(
         _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children)
         typer.echo(f"mock nodes up: {', '.join(f'{n} -> {os.path.realpath(link_dir / n)}' for n in node_ids)}")
         children.append(Child("gateway", exe + ["gateway", "--config", str(config)], out_dir))
-        _wait_for(db_path.exists, 30, "the gateway's database", children)
+        db_url = f"sqlite:///{db_path}"
+        _wait_for(lambda: _schema_ready(db_url), 60, "the gateway's database", children)
         typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
+        key = subprocess.run(
+            exe + ["apikey", "create", "--name", "demo", "--role", "operator", "--database-url", db_url],
+            capture_output=True, text=True, timeout=60,
+        )
+        if key.returncode != 0:
+            fail(f"cannot create the demo API key: {key.stderr.strip()}")
+        token = key.stdout.strip().splitlines()[-1]
+        api_port = _free_port(port)
+        children.append(Child("api", exe + ["api", "--database-url", db_url, "--port", str(api_port)], out_dir))
+        _wait_for(lambda: _http_ok(f"http://127.0.0.1:{api_port}/healthz"), 60, "the API", children)
+        typer.echo(f"dashboard: http://127.0.0.1:{api_port}/#key={token}")
+        typer.echo(f"API:       http://127.0.0.1:{api_port}/api/v1/nodes  (Authorization: Bearer {token})")
         typer.echo(f"running for {duration_s:g} s (Ctrl-C stops earlier)\n")
-        progress = Progress(f"sqlite:///{db_path}", truths, echo=typer.echo)
+        progress = Progress(db_url, truths, echo=typer.echo)
         while time.monotonic() - started < duration_s:
             for child in children:
                 if not child.alive():
