@@ -79,7 +79,9 @@ class RingSpec(_Strict):
 
     tx_axial_mm: float = Field(300.0, ge=0, description="Tx ring position from the pipe end behind it")
     tx_rx_distance_mm: float = Field(400.0, gt=0)
-    n_transducers: int = Field(16, ge=1, le=32, description="per ring (<= 32: the protocol's channel mask); the paper uses 16 (FE) or 8 (experiment)")
+    n_transducers: int = Field(
+        16, ge=1, le=64, description="per ring; the paper uses 16 (FE) or 8 (experiment); a served node carries <= 32"
+    )
     transducer_width_mm: float = Field(15.0, gt=0, description="circumferential width of each PZT")
     transducer_length_mm: float = Field(15.0, ge=0, description="axial length of each PZT")
     tx_angles_deg: list[float] | None = None
