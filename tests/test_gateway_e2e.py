@@ -52,6 +52,8 @@ def write_scenario(path: Path, quiet: list[str], damaged: dict[str, float] | Non
 
 def node_cfg(node_id: str, link_dir: Path, **kw) -> dict:
     cfg = {"id": node_id, "url": str(link_dir / node_id), "interval_s": 0.3, "timeout_s": 1.0,
+           # what an installer writes down: the scenario's default pipe (the node does not report it)
+           "geometry": {"pipe_length_mm": 1000.0, "tx_axial_mm": 300.0, "wall_mm": 4.0},
            "threshold": {"calibration_count": 8, "hysteresis_count": 2, "false_alarm_rate": 1e-3}}
     cfg.update(kw)
     return cfg

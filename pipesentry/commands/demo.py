@@ -50,11 +50,15 @@ class Child:
         self._log.close()
 
 
-def gateway_toml(db_path: Path, link_dir: Path, node_ids: list[str], interval_s: float) -> str:
+def gateway_toml(db_path: Path, link_dir: Path, nodes, interval_s: float) -> str:
+    """The demo's gateway config; the pipe facts a node does not report (length, Tx ring position,
+    wall) come from the scenario, as an installer would write them into a real config."""
     lines = [f'[database]\nurl = "sqlite:///{db_path}"\n', "[logging]\njson = false\n"]
-    for node_id in node_ids:
+    for node in nodes:
         lines.append(
-            f'[[nodes]]\nid = "{node_id}"\nurl = "{link_dir / node_id}"\ninterval_s = {interval_s}\n'
+            f'[[nodes]]\nid = "{node.node_id}"\nurl = "{link_dir / node.node_id}"\ninterval_s = {interval_s}\n'
+            f"[nodes.geometry]\npipe_length_mm = {node.pipe.length_mm}\ntx_axial_mm = {node.rings.tx_axial_mm}\n"
+            f"wall_mm = {node.pipe.wall_mm}\n"
             "[nodes.threshold]\ncalibration_count = 8\nhysteresis_count = 2\nfalse_alarm_rate = 0.001\n"
         )
     return "\n".join(lines)
@@ -129,7 +133,7 @@ def demo(
         for stale in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
             stale.unlink(missing_ok=True)
         config = out_dir / "gateway.toml"
-        config.write_text(gateway_toml(db_path, link_dir, node_ids, interval_s))
+        config.write_text(gateway_toml(db_path, link_dir, scn.nodes, interval_s))
     except OSError as exc:
         fail(f"cannot prepare {out_dir}: {exc.strerror or exc}")
 
