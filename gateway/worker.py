@@ -257,6 +257,21 @@ class NodeWorker:
             return self._store_baseline(acq, transfer, current, baseline_row is None, node_errors)
         return self._store_monitor(conn, status, acq, transfer, current, baseline_row.measurement_id, node_errors)
 
+    def _acquisition_fields(self, acq, transfer, current) -> dict:
+        """What store_measurement needs to know about the acquisition itself."""
+        return dict(
+            acquired_at=utc_now(),
+            node_measurement_id=acq.measurement_id,
+            codes=transfer.codes,
+            volts_per_code=transfer.volts_per_code,
+            fs_hz=transfer.fs_hz,
+            t0_s=transfer.t0_s,
+            averaging=self.conn.config.averaging,
+            excitation_hz=current.excitation_hz,
+            cycles=current.cycles,
+            temperature_c=_finite_or_none(transfer.temperature_c),
+        )
+
     def _store_baseline(self, acq, transfer, current, activate: bool, node_errors) -> CycleOutcome:
         """A commissioning measurement: stored as a baseline; the first one becomes the active baseline."""
         done = self._n_baselines + 1 >= self.settings.commissioning_count
@@ -268,16 +283,7 @@ class NodeWorker:
                 session,
                 self.settings.id,
                 kind=MeasurementKind.BASELINE,
-                acquired_at=utc_now(),
-                node_measurement_id=acq.measurement_id,
-                codes=transfer.codes,
-                volts_per_code=transfer.volts_per_code,
-                fs_hz=transfer.fs_hz,
-                t0_s=transfer.t0_s,
-                averaging=self.conn.config.averaging,
-                excitation_hz=current.excitation_hz,
-                cycles=current.cycles,
-                temperature_c=_finite_or_none(transfer.temperature_c),
+                **self._acquisition_fields(acq, transfer, current),
                 state_change=StateChangeInput(prev_state, new_state) if new_state != prev_state else None,
             )
             if activate:
@@ -396,16 +402,7 @@ class NodeWorker:
                 session,
                 self.settings.id,
                 kind=MeasurementKind.MONITOR,
-                acquired_at=utc_now(),
-                node_measurement_id=acq.measurement_id,
-                codes=transfer.codes,
-                volts_per_code=transfer.volts_per_code,
-                fs_hz=transfer.fs_hz,
-                t0_s=transfer.t0_s,
-                averaging=conn.config.averaging,
-                excitation_hz=current.excitation_hz,
-                cycles=current.cycles,
-                temperature_c=_finite_or_none(transfer.temperature_c),
+                **self._acquisition_fields(acq, transfer, current),
                 di_maps=maps,
                 detection=detection,
                 state_change=change,
