@@ -95,15 +95,22 @@ def exclusion_mask(grid, axial_mm: float, angle_deg: float, radius_mm: float, ci
     return np.hypot(dz, arc) <= radius_mm
 
 
-def peak_confidence(di_map: DIMap, estimate: Estimate, *, circumference_mm: float, exclusion_mm: float = 50.0) -> Confidence:
-    """Confidence of ``estimate`` on ``di_map``: competing-peak ratio and main-lobe widths."""
+def peak_confidence(di_map: DIMap, estimate: Estimate, *, circumference_mm: float, exclusion_mm: float = 50.0,
+                    runner_up_di: float | None = None) -> Confidence:
+    """Confidence of ``estimate`` on ``di_map``: competing-peak ratio and main-lobe widths.
+
+    ``runner_up_di``: the competing peak's DI refined off the map's pixels, when the estimate
+    was (so both sides of the ratio are sampled alike; imaging/multidefect.py)."""
     px, grid = di_map.pixels, di_map.grid
     i = int(np.clip(round((estimate.axial_mm - grid.axial_start_mm) / grid.axial_step_mm), 0, grid.axial_count - 1))
     j = int(round((estimate.angle_deg - grid.angle_start_deg) / grid.angle_step_deg))
     j = j % grid.angle_count if grid.wraps_in_angle else int(np.clip(j, 0, grid.angle_count - 1))
-    peak = float(px[i, j])
+    # The estimate's own DI when it was refined off the map's pixels (a finer local grid).
+    peak = max(float(px[i, j]), float(estimate.di))
     outside = ~exclusion_mask(grid, estimate.axial_mm, estimate.angle_deg, exclusion_mm, circumference_mm)
     second = float(px[outside].max()) if outside.any() else 0.0
+    if runner_up_di is not None:
+        second = max(second, float(runner_up_di))
     ratio = float(np.clip(second / peak, 0.0, 1.0)) if peak > 0 else 1.0
     width_axial = _half_power_width(px[:, j], i, grid.axial_step_mm, False)
     width_angle = _half_power_width(px[i, :], j, grid.angle_step_deg, grid.wraps_in_angle)

@@ -13,21 +13,28 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from imaging.dimap import DIMap, default_window_samples
+from imaging.echofit import burst_pair, fit_echoes  # noqa: F401  (burst_pair: re-exported)
 from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.localize import Estimate, exclusion_mask, refine_peak
 from imaging.measurement import Measurement
-from imaging.multipath import feature_power, literal_multipath_pixels, multipath_pixels
-from imaging.paths import PathModel, scalar_paths
-from imaging.timing import MM_PER_M
+from imaging.multipath import feature_power, local_multipath_pixels, multipath_pixels
+from imaging.paths import PathModel
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
 REFINE_RADIUS_MM = 20.0  # the refinement pass may move an estimate this far at most
+FINE_STEP_MM = 1.0  # peaks found on the (coarse) map grid are refined on a local grid this fine
+FINE_STEP_DEG = 1.0
+FINE_HALF_WIDTH = 1  # the local grid spans +- this many coarse steps round the coarse peak
+CONFIDENCE_EXCLUSION_MM = 50.0  # the competing peak of a defect's confidence lies this far away at least
+RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
+FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
 
 
 class MultiDefectError(ValueError):
@@ -41,75 +48,89 @@ class Found:
     estimate: Estimate
     di_map: DIMap
     severity: float
-
-
-def burst_pair(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:
-    """The Hann burst and its quadrature twin (carrier shifted by 90 degrees): any carrier phase is a mix."""
-    n = max(2, int(math.floor(cycles / excitation_hz * fs_hz)) + 1)
-    t = np.arange(n) / fs_hz
-    window = 0.5 * (1.0 - np.cos(2.0 * math.pi * excitation_hz * t / cycles))
-    phase = 2.0 * math.pi * excitation_hz * t
-    return window * np.sin(phase), window * np.cos(phase)
-
-
-def fit_echoes(
-    residual: np.ndarray,
-    reference: Measurement,
-    model: PathModel,
-    positions: list[tuple[float, float]],
-    *,
-    rx_mask: np.ndarray | None = None,
-) -> list[np.ndarray]:
-    """Joint least-squares fit, per receiver, of point scatterers' echoes at ``positions`` (axial_mm, angle_deg).
-
-    Returns one fitted echo array [n_rx, n] per position (their sum is the full fit). Fitting
-    the scatterers together keeps one from absorbing another's echoes where they overlap.
-    """
-    residual = np.asarray(residual, dtype=np.float64)
-    n_rx, n = residual.shape
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-    in_phase, quadrature = burst_pair(reference.fs_hz, reference.excitation_hz, reference.cycles)
-    c_mm_s = reference.velocity_m_s * MM_PER_M
-    fitted = [np.zeros_like(residual) for _ in positions]
-    for m in range(n_rx):
-        if not mask[m]:
-            continue
-        columns, owner = [], []
-        for p, (axial_mm, angle_deg) in enumerate(positions):
-            rel = angle_deg - float(reference.rx_angles_deg[m])
-            for _group, length, _w in scalar_paths(model, axial_mm, rel):
-                k = math.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
-                lo, hi = max(k, 0), min(k + in_phase.size, n)
-                if hi <= lo:
-                    continue
-                for shape in (in_phase, quadrature):
-                    col = np.zeros(n)
-                    col[lo:hi] = shape[lo - k : hi - k]
-                    columns.append(col)
-                    owner.append(p)
-        if not columns:
-            continue
-        design = np.stack(columns, axis=1)
-        # Normal equations: 2 unknowns per path only; lstsq on the small Gram matrix copes with
-        # coincident paths (identical columns) by taking the minimum-norm split between them.
-        coef, *_ = np.linalg.lstsq(design.T @ design, design.T @ residual[m], rcond=1e-10)
-        owner_arr = np.asarray(owner)
-        for p in range(len(positions)):
-            sel = owner_arr == p
-            if sel.any():
-                fitted[p][m] = design[:, sel] @ coef[sel]
-    return fitted
+    runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
 
 
 def severity_at(values: np.ndarray, reference: Measurement, model: PathModel, estimate: Estimate, *,
                 power: int, rx_mask: np.ndarray | None) -> float:
     """Least-squares scatterer strength at the estimate (the map's amplitude normalisation at one pixel)."""
     pixel = Grid(estimate.axial_mm, 1.0, 1, estimate.angle_deg, 1.0, 1)
-    value = literal_multipath_pixels(
+    value = local_multipath_pixels(
         values, reference.rx_angles_deg, pixel, model, velocity_m_s=reference.velocity_m_s,
         t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power, rx_mask=rx_mask, normalise="amplitude",
     )[0, 0]
     return float(math.sqrt(max(value, 0.0)) if power == 2 else value)
+
+
+def _axis_window(centre: float, step: float, half: int, lo: float, hi: float) -> tuple[float, int]:
+    """(start, count) of ``2 half + 1`` points ``step`` apart centred on ``centre``, cut to [lo, hi]."""
+    first = -half if lo == -math.inf else max(-half, math.ceil((lo - centre) / step - 1e-9))
+    last = half if hi == math.inf else min(half, math.floor((hi - centre) / step + 1e-9))
+    return centre + first * step, max(1, last - first + 1)
+
+
+def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, j: int,
+              allowed: Callable[[Grid], np.ndarray]) -> Estimate:
+    """The peak near pixel (i, j) of a coarse map, on a FINE_STEP_MM x FINE_STEP_DEG local grid.
+
+    A window of +-FINE_HALF_WIDTH coarse steps round the pixel is imaged at the fine step
+    (``image_local``); while its best ``allowed`` pixel lies on an edge the window may still
+    move (up to FINE_MOVES times), it follows the peak. The result is refined below the fine
+    step like any peak (imaging/localize.py). When the coarse map is no coarser than the fine
+    step the coarse pixel itself is refined.
+    """
+    grid = di_map.grid
+    step_mm, step_deg = min(grid.axial_step_mm, FINE_STEP_MM), min(grid.angle_step_deg, FINE_STEP_DEG)
+    if step_mm == grid.axial_step_mm and step_deg == grid.angle_step_deg:
+        return refine_peak(di_map, i, j)
+    half_z = int(round(FINE_HALF_WIDTH * grid.axial_step_mm / step_mm))
+    half_a = int(round(FINE_HALF_WIDTH * grid.angle_step_deg / step_deg))
+    z_lo, z_hi = grid.axial_start_mm, grid.axial_start_mm + grid.axial_step_mm * (grid.axial_count - 1)
+    a_lo, a_hi = (-math.inf, math.inf) if grid.wraps_in_angle else (
+        grid.angle_start_deg, grid.angle_start_deg + grid.angle_step_deg * (grid.angle_count - 1))
+    centre_z = grid.axial_start_mm + grid.axial_step_mm * i
+    centre_a = grid.angle_start_deg + grid.angle_step_deg * j
+    for _ in range(FINE_MOVES + 1):
+        z0, nz = _axis_window(centre_z, step_mm, half_z, z_lo, z_hi)
+        a0, na = _axis_window(centre_a, step_deg, half_a, a_lo, a_hi)
+        local = DIMap(image_local(Grid(z0, step_mm, nz, a0, step_deg, na)), Grid(z0, step_mm, nz, a0, step_deg, na),
+                      di_map.method, di_map.window_samples)
+        candidates = np.where(allowed(local.grid), local.pixels, -np.inf)
+        a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
+        moved_z = (a == 0 and z0 > z_lo + 1e-9) or (a == nz - 1 and z0 + step_mm * (nz - 1) < z_hi - 1e-9)
+        moved_a = (b == 0 and a0 > a_lo + 1e-9) or (b == na - 1 and a0 + step_deg * (na - 1) < a_hi - 1e-9)
+        if not (moved_z or moved_a):
+            break
+        centre_z, centre_a = z0 + step_mm * a, a0 + step_deg * b
+    return refine_peak(local, int(a), int(b))
+
+
+def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple[int, int]]:
+    """The ``count`` highest finite pixels that are >= their 8 neighbours (angle wraps when ``wraps``)."""
+    padded = np.pad(candidates, ((1, 1), (0, 0)), constant_values=-np.inf)
+    padded = (np.pad(padded, ((0, 0), (1, 1)), mode="wrap") if wraps
+              else np.pad(padded, ((0, 0), (1, 1)), constant_values=-np.inf))
+    n_a, n_b = candidates.shape
+    peak = np.isfinite(candidates)
+    for da in (-1, 0, 1):
+        for db in (-1, 0, 1):
+            if da or db:
+                peak &= candidates >= padded[1 + da:1 + da + n_a, 1 + db:1 + db + n_b]
+    flat = np.flatnonzero(peak)
+    best = flat[np.argsort(-candidates.ravel()[flat], kind="stable")[:count]]
+    return [tuple(int(x) for x in np.unravel_index(k, candidates.shape)) for k in best]
+
+
+def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimate: Estimate,
+               circumference_mm: float) -> float:
+    """The highest peak more than CONFIDENCE_EXCLUSION_MM from the estimate, refined like the estimate
+    (the best of the RUNNER_UP_CANDIDATES highest local maxima of the coarse map there)."""
+    def outside(g: Grid) -> np.ndarray:
+        return ~exclusion_mask(g, estimate.axial_mm, estimate.angle_deg, CONFIDENCE_EXCLUSION_MM, circumference_mm)
+
+    candidates = np.where(outside(di_map.grid), di_map.pixels, -np.inf)
+    maxima = _local_maxima(candidates, di_map.grid.wraps_in_angle, RUNNER_UP_CANDIDATES)
+    return max((fine_peak(image_local, di_map, i, j, outside).di for i, j in maxima), default=0.0)
 
 
 def find_defects(
@@ -125,11 +146,14 @@ def find_defects(
     rx_mask: np.ndarray | None = None,
     circumference_mm: float | None = None,
     exclusion_mm: float = DEFAULT_EXCLUSION_MM,
-) -> tuple[DIMap, list[Found]]:
-    """(the first map, the defects whose peak DI reaches ``threshold``, strongest first; at most ``max_defects``).
+) -> tuple[DIMap, list[Found], Estimate]:
+    """(the first map, the defects whose peak DI reaches ``threshold``, strongest first, at most
+    ``max_defects``; the first map's peak, refined on the fine grid).
 
-    The first map's peak is always in ``Found`` position 0 when it crosses the threshold; the
-    loop runs at most ``max_defects`` times.
+    Maps are computed on ``grid`` (coarse); every peak is then refined by ``fine_peak``. The
+    first map's peak is ``Found`` position 0 when it crosses the threshold; the loop runs at
+    most ``max_defects`` times and stops at the first peak below the threshold, so a record
+    without a defect costs one map.
     """
     if max_defects < 1:
         raise MultiDefectError(f"max_defects must be at least 1, got {max_defects}")
@@ -138,8 +162,11 @@ def find_defects(
     original = np.asarray(residual, dtype=np.float64)
     residual = original.copy()
     first: DIMap | None = None
+    first_peak: Estimate | None = None
     found: list[Found] = []
     fits: list[np.ndarray] = []
+    geometry = dict(velocity_m_s=reference.velocity_m_s, t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power,
+                    rx_mask=rx_mask)
 
     def image(res: np.ndarray) -> tuple[np.ndarray, DIMap]:
         values = residual_feature(
@@ -147,55 +174,72 @@ def find_defects(
             reference_amplitude=reference_amplitude_v, feature=feature,
             window_samples=default_window_samples(reference),
         )
-        pixels = multipath_pixels(
-            values, reference.rx_angles_deg, grid, model, velocity_m_s=reference.velocity_m_s,
-            t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power, rx_mask=rx_mask,
-        )
+        pixels = multipath_pixels(values, reference.rx_angles_deg, grid, model, **geometry)
         return values, DIMap(pixels, grid, "multipath", default_window_samples(reference))
+
+    def local_image(values: np.ndarray) -> Callable[[Grid], np.ndarray]:
+        return lambda local: local_multipath_pixels(values, reference.rx_angles_deg, local, model, **geometry)
+
+    def away_from(priors: list[Found]) -> Callable[[Grid], np.ndarray]:
+        def allowed(g: Grid) -> np.ndarray:
+            mask = np.ones(g.shape, bool)
+            for prior in priors:
+                mask &= ~exclusion_mask(g, prior.estimate.axial_mm, prior.estimate.angle_deg, exclusion_mm,
+                                        circumference_mm)
+            return mask
+        return allowed
 
     for _ in range(max_defects):
         values, di_map = image(residual)
-        pixels = di_map.pixels
         first = first or di_map
-        candidates = pixels.copy()
-        for prior in found:
-            candidates[exclusion_mask(grid, prior.estimate.axial_mm, prior.estimate.angle_deg,
-                                      exclusion_mm, circumference_mm)] = -np.inf
+        allowed = away_from(list(found))
+        candidates = np.where(allowed(grid), di_map.pixels, -np.inf)
         if not np.isfinite(candidates).any():
             break
         i, j = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
-        estimate = refine_peak(di_map, int(i), int(j))
+        estimate = fine_peak(local_image(values), di_map, int(i), int(j), allowed)
+        first_peak = first_peak or estimate
         # What the echo fit leaves of a strong defect (the model is not the pipe) can cross an
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
         severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
-        found.append(Found(estimate, di_map, severity))
+        runner_up = _runner_up(local_image(values), di_map, estimate, circumference_mm)
+        found.append(Found(estimate, di_map, severity, runner_up))
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
         fits = fit_echoes(original, reference, model, positions, rx_mask=rx_mask)
         residual = original - sum(fits)
-    assert first is not None
+    assert first is not None and first_peak is not None
     if len(found) > 1:
-        found = _refine(found, fits, original, image, reference, model, power, rx_mask, circumference_mm, exclusion_mm)
-    return first, found
+        found = _refine(found, fits, original, image, local_image, reference, model, power, rx_mask,
+                        circumference_mm)
+    return first, found, first_peak
 
 
-def _refine(found, fits, original, image, reference, model, power, rx_mask, circumference_mm, exclusion_mm):
+def _refine(found, fits, original, image, local_image, reference, model, power, rx_mask, circumference_mm):
     """One pass: re-locate each defect on the residual with every *other* defect's echoes removed.
 
     The search places each defect while the later ones are still in the residual, which biases
     the earlier peaks where their echoes overlap; re-imaging each with the others' (jointly
-    fitted) echoes removed undoes most of that.
+    fitted) echoes removed undoes most of that. The whole map is re-imaged (it is the
+    defect's map, for its confidence); the peak is sought within REFINE_RADIUS_MM.
     """
     refined = []
     for i, item in enumerate(found):
         others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(original))
         values, di_map = image(original - others)
-        near = exclusion_mask(di_map.grid, item.estimate.axial_mm, item.estimate.angle_deg, REFINE_RADIUS_MM,
-                              circumference_mm)
-        candidates = np.where(near, di_map.pixels, -np.inf)
+
+        def near(g: Grid, item=item) -> np.ndarray:
+            return exclusion_mask(g, item.estimate.axial_mm, item.estimate.angle_deg, REFINE_RADIUS_MM,
+                                  circumference_mm)
+
+        candidates = np.where(near(di_map.grid), di_map.pixels, -np.inf)
+        if not np.isfinite(candidates).any():  # a coarse grid with no pixel that close: keep the estimate
+            refined.append(item)
+            continue
         a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
-        estimate = refine_peak(di_map, int(a), int(b))
+        estimate = fine_peak(local_image(values), di_map, int(a), int(b), near)
         severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
-        refined.append(Found(estimate, di_map, severity))
+        refined.append(Found(estimate, di_map, severity, _runner_up(local_image(values), di_map, estimate,
+                                                                     circumference_mm)))
     return sorted(refined, key=lambda f: -f.estimate.di)

@@ -28,6 +28,7 @@ rolled in angle per receiver.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -35,9 +36,10 @@ import numpy as np
 from imaging.arrivals import end_reflection_coefficients, reference_amplitude
 from imaging.dimap import DIMap, check_compatible, default_window_samples
 from imaging.features import residual_feature
+from imaging.gather import accumulate
 from imaging.grid import Grid
 from imaging.measurement import Measurement
-from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths
+from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, stacked_paths
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
@@ -63,8 +65,20 @@ def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str) -> np.nd
     return _safe_divide(weighted, np.sqrt(total_sq) if normalise == "snr" else total_sq)
 
 
-@lru_cache(maxsize=32)
-def _tables(
+@dataclass(frozen=True)
+class GatherTable:
+    """One receiver angle's gather table: per in-record path its coherence ``groups`` [P] (int64), sample
+    ``idx`` [P, n_pixels] (int32; ``n_samples`` = outside the record, a zero appended to the feature)
+    and ``w`` [P, n_pixels] (weight**power, float32); and ``weight_sq`` [n_groups, n_pixels], per
+    group the sum of weight**(2 power) over its in-record paths."""
+
+    groups: np.ndarray
+    idx: np.ndarray
+    w: np.ndarray
+    weight_sq: np.ndarray
+
+
+def build_table(
     grid: Grid,
     rx_angle_deg: float,
     model: PathModel,
@@ -73,29 +87,35 @@ def _tables(
     fs_hz: float,
     n_samples: int,
     power: int,
-) -> tuple[tuple[tuple[int, np.ndarray, np.ndarray], ...], np.ndarray]:
-    """Per path: (group, sample index int32 [n_pixels], weight**power float32 [n_pixels]); and per group
-    the sum of weight**(2 power) over its in-record paths, [n_groups, n_pixels].
-
-    Out-of-record samples index ``n_samples``, a zero appended to the feature. Paths that
-    never land inside the record are dropped.
-    """
+) -> GatherTable:
+    """The gather table of a receiver at ``rx_angle_deg`` (uncached). Paths never inside the record are dropped."""
     c_mm_s = velocity_m_s * MM_PER_M
     rel = grid.angle_deg[None, :] - rx_angle_deg
-    tables, weight_sq = [], np.zeros((coherence_groups(model), grid.shape[0] * grid.shape[1]))
+    n_pix = grid.shape[0] * grid.shape[1]
+    groups, idxs, ws = [], [], []
+    weight_sq = np.zeros((coherence_groups(model), n_pix))
     for family, length, weight in scatter_paths(model, grid.axial_mm[:, None], rel):
         k = np.floor((length.ravel() / c_mm_s - t0_s) * fs_hz + 0.5)
         inside = (k >= 0) & (k < n_samples)
         if not inside.any():
             continue
-        idx = np.where(inside, k, n_samples).astype(np.int32)
         w = np.ascontiguousarray(weight.ravel() ** power, dtype=np.float32)
-        idx.setflags(write=False)
-        w.setflags(write=False)
-        tables.append((family, idx, w))
+        groups.append(family)
+        idxs.append(np.where(inside, k, n_samples).astype(np.int32))
+        ws.append(w)
         weight_sq[family] += np.where(inside, np.square(w, dtype=np.float64), 0.0)
-    weight_sq.setflags(write=False)
-    return tuple(tables), weight_sq
+    table = GatherTable(
+        np.asarray(groups, dtype=np.int64),
+        np.stack(idxs) if idxs else np.zeros((0, n_pix), np.int32),
+        np.stack(ws) if ws else np.zeros((0, n_pix), np.float32),
+        weight_sq,
+    )
+    for arr in (table.groups, table.idx, table.w, table.weight_sq):
+        arr.setflags(write=False)
+    return table
+
+
+_cached_table = lru_cache(maxsize=32)(build_table)
 
 
 def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, int]]:
@@ -109,6 +129,32 @@ def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, i
         else:
             plan.append((float(angle), 0))
     return plan
+
+
+@lru_cache(maxsize=32)
+def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
+                     t0_s: float, fs_hz: float, n_samples: int, power: int, mask: tuple[bool, ...]) -> np.ndarray:
+    """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle]."""
+    total = np.zeros((coherence_groups(model),) + grid.shape)
+    for (angle, roll), healthy in zip(plan, mask):
+        if healthy:
+            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power)
+            total += np.roll(table.weight_sq.reshape(total.shape), roll, axis=2)
+    total.setflags(write=False)
+    return total
+
+
+def _check_arguments(feature: np.ndarray, rx_angles_deg, rx_mask, normalise: str) -> tuple[np.ndarray, np.ndarray]:
+    n_rx = feature.shape[0]
+    rx_angles_deg = np.asarray(rx_angles_deg, dtype=np.float64)
+    if rx_angles_deg.shape != (n_rx,):
+        raise MultipathError(f"{rx_angles_deg.size} receiver angles for {n_rx} feature rows")
+    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    if mask.shape != (n_rx,):
+        raise MultipathError("rx_mask must have one entry per receiver")
+    if normalise not in NORMALISATIONS:
+        raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
+    return rx_angles_deg, mask
 
 
 def multipath_pixels(
@@ -126,41 +172,65 @@ def multipath_pixels(
 ) -> np.ndarray:
     """The all-paths map [n_axial, n_angle] of a feature [n_rx, n_samples] (fast gather); complex: coherent.
 
-    The gather runs in single precision (complex64/float32: half the memory traffic); each
-    receiver's partial map is accumulated in double. Relative error ~1e-6 of the map's scale.
+    Gather tables are cached per geometry (a node's map grid), so use this for a node's
+    recurring grid and ``local_multipath_pixels`` for one-off small grids. The feature is
+    gathered in single precision (complex64/float32: half the memory traffic) and summed in
+    double (imaging/gather.py). Relative error ~1e-6 of the map's scale.
     """
     feature = np.asarray(feature)
+    rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
     coherent = np.iscomplexobj(feature)
-    single = np.complex64 if coherent else np.float32
-    double = np.complex128 if coherent else np.float64
     n_rx, n = feature.shape
-    rx_angles_deg = np.asarray(rx_angles_deg, dtype=np.float64)
-    if rx_angles_deg.shape != (n_rx,):
-        raise MultipathError(f"{rx_angles_deg.size} receiver angles for {n_rx} feature rows")
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-    if mask.shape != (n_rx,):
-        raise MultipathError("rx_mask must have one entry per receiver")
-    if normalise not in NORMALISATIONS:
-        raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
-    n_fam = coherence_groups(model)
-    padded = np.zeros((n_rx, n + 1), dtype=single)
+    geometry = (model, float(velocity_m_s), float(t0_s), float(fs_hz), n, power)
+    padded = np.zeros((n_rx, n + 1), dtype=np.complex64 if coherent else np.float32)
     padded[:, :n] = feature
-    total = np.zeros((n_fam,) + grid.shape, dtype=double)
-    total_sq = np.zeros((n_fam,) + grid.shape)
-    acc = np.empty((n_fam, grid.shape[0] * grid.shape[1]), dtype=single)
-    tmp = np.empty(acc.shape[1], dtype=single)
-    for m, (angle, roll) in enumerate(_receiver_plan(grid, rx_angles_deg)):
-        if not mask[m]:
-            continue
-        tables, weight_sq = _tables(grid, angle, model, float(velocity_m_s), float(t0_s), float(fs_hz), n, power)
-        acc.fill(0.0)
-        for family, idx, w in tables:
-            np.take(padded[m], idx, out=tmp)
-            tmp *= w
-            acc[family] += tmp
-        total += np.roll(acc.reshape((n_fam,) + grid.shape), roll, axis=2)
-        total_sq += np.roll(weight_sq.reshape((n_fam,) + grid.shape), roll, axis=2)
-    return _combine(total, total_sq, normalise)
+    plan = tuple(_receiver_plan(grid, rx_angles_deg))
+    total = np.zeros((coherence_groups(model),) + grid.shape, dtype=np.complex128 if coherent else np.float64)
+    for m, (angle, roll) in enumerate(plan):
+        if mask[m]:
+            table = _cached_table(grid, angle, *geometry)
+            accumulate(total, padded[m], table.groups, table.idx, table.w, roll)
+    return _combine(total, _weight_sq_total(grid, plan, *geometry, tuple(bool(x) for x in mask)), normalise)
+
+
+def local_multipath_pixels(
+    feature: np.ndarray,
+    rx_angles_deg: np.ndarray,
+    grid: Grid,
+    model: PathModel,
+    *,
+    velocity_m_s: float,
+    t0_s: float,
+    fs_hz: float,
+    power: int = 1,
+    rx_mask: np.ndarray | None = None,
+    normalise: str = "snr",
+) -> np.ndarray:
+    """The same map as ``multipath_pixels`` for a small one-off grid (a peak's neighbourhood, one pixel).
+
+    Nothing is cached: the paths of every receiver and pixel are computed here, in double
+    precision, and the feature gathered directly. Cost grows as n_rx x n_paths x n_pixels, so
+    keep the grid to a few hundred pixels.
+    """
+    feature = np.asarray(feature)
+    rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
+    coherent = np.iscomplexobj(feature)
+    rows = np.flatnonzero(mask)
+    n = feature.shape[1]
+    c_mm_s = velocity_m_s * MM_PER_M
+    n_groups = coherence_groups(model)
+    groups = np.zeros((n_groups,) + grid.shape, dtype=np.complex128 if coherent else np.float64)
+    weight_sq = np.zeros((n_groups,) + grid.shape)
+    if rows.size:
+        rel = grid.angle_deg[None, None, :] - rx_angles_deg[rows, None, None]
+        family, length, weight = stacked_paths(model, grid.axial_mm[None, :, None], rel)  # [P, n_rx, n_ax, n_an]
+        k = np.floor((length / c_mm_s - t0_s) * fs_hz + 0.5)
+        inside = (k >= 0) & (k < n)
+        w = np.where(inside, weight**power, 0.0)
+        samples = feature[rows[None, :, None, None], np.where(inside, k, 0).astype(np.intp)]
+        groups[family] += np.sum(w * samples, axis=1)  # one path per group: ``family`` has no repeats
+        weight_sq[family] += np.sum(w * w, axis=1)
+    return _combine(groups, weight_sq, normalise)
 
 
 def literal_multipath_pixels(

@@ -149,6 +149,36 @@ def scatter_paths(
     return paths
 
 
+def stacked_paths(
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``scatter_paths`` as three arrays: groups [P] (int64), length_mm and weight [P, *broadcast shape].
+
+    The same arithmetic, done once for all families and wraps (few large array operations
+    instead of many small ones: what a small grid needs).
+    """
+    families = model.families()
+    if not families:
+        shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg))
+        return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
+    z = np.asarray(axial_mm, dtype=np.float64)
+    arc = signed_arc_mm(rel_angle_deg, model.circumference_mm)
+    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(arc, model.circumference_mm, model.wraps)))  # [W, ...]
+    extra = (1,) * max(z.ndim, legs.ndim - 1)
+    offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1, 1) + extra)
+                                   for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
+    incident = np.abs(offset + sign * z)  # [F, 1, ...]
+    dz = image - z
+    # sqrt of the sum of squares, not np.hypot (~20x slower here); lengths are mm, far from overflow.
+    r = np.sqrt(np.square(dz) + np.square(legs[None]))  # [F, W, ...]
+    length = incident + r
+    weight = path_weight(factor, dz, r, model)
+    length, weight = np.broadcast_arrays(length, weight)
+    n = len(families) * model.wraps
+    groups = np.arange(n, dtype=np.int64)
+    return groups, length.reshape((n,) + length.shape[2:]), weight.reshape((n,) + weight.shape[2:])
+
+
 def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float) -> list[tuple[int, float, float]]:
     """The same paths for one pixel, written out with scalar math (the literal oracle's model)."""
     lam, circ = model.wavelength_mm, model.circumference_mm

@@ -180,15 +180,16 @@ def _multipath(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.
                settings: AssessSettings, threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
     model = path_model_for(match.baseline, wall_mm=settings.wall_mm, model_ends=settings.model_ends)
     residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
-    first, found = find_defects(
+    first, found, first_peak = find_defects(
         residual, match.baseline, grid, model, feature=settings.feature,
         reference_amplitude_v=reference_amplitude(match.baseline), threshold=threshold,
         max_defects=settings.max_defects, rx_mask=mask, circumference_mm=model.circumference_mm,
     )
-    peak = found[0].estimate if found else locate_peak(first)
+    peak = found[0].estimate if found else first_peak
     defects = [
         Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di,
-               peak_confidence(f.di_map, f.estimate, circumference_mm=model.circumference_mm), f.severity)
+               peak_confidence(f.di_map, f.estimate, circumference_mm=model.circumference_mm,
+                               runner_up_di=f.runner_up_di), f.severity)
         for f in found
     ]
     return first, peak, defects
@@ -232,7 +233,7 @@ def default_grid(method: str, tx_rx_distance_mm: float) -> Grid:
     benchmark, a quarter of the time: its peaks are tens of mm wide and refined below a pixel)."""
     if method == "paper":
         return Grid.default(tx_rx_distance_mm)
-    return Grid.default(tx_rx_distance_mm, axial_step_mm=2.0, angle_step_deg=2.0)
+    return Grid.default(tx_rx_distance_mm, axial_step_mm=4.0, angle_step_deg=4.0)
 
 
 def _compatible(baseline: Measurement, current: Measurement) -> bool:

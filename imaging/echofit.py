@@ -1,0 +1,166 @@
+"""Point scatterers' echoes fitted to a residual: one burst per modelled path, free amplitude and phase.
+
+On every receiver, each path from each position contributes two columns: the Hann burst and
+its quadrature twin, starting at the path's arrival sample and cut to the record. The
+amplitudes of all columns are fitted jointly, per receiver, by least squares (normal
+equations, minimum-norm split between columns that (nearly) coincide: singular values of the
+Gram matrix below FIT_RCOND of the largest are dropped), and each position's fitted echoes
+are returned separately.
+
+``fit_echoes`` builds the Gram matrix from a table of the burst pair's partial products at
+each lag (the columns are shifted, possibly cut, copies of two fixed shapes), the right-hand
+side from the matched filter, the echoes by FFT convolution, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
+a full-length vector and solves receiver by receiver: the test oracle.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy import fft as sp_fft
+
+from imaging.measurement import Measurement
+from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths
+from imaging.timing import MM_PER_M
+
+FIT_RCOND = 1e-10  # relative cut-off on the Gram matrix's singular values
+
+
+def burst_pair(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The Hann burst and its quadrature twin (carrier shifted by 90 degrees): any carrier phase is a mix."""
+    n = max(2, int(math.floor(cycles / excitation_hz * fs_hz)) + 1)
+    t = np.arange(n) / fs_hz
+    window = 0.5 * (1.0 - np.cos(2.0 * math.pi * excitation_hz * t / cycles))
+    phase = 2.0 * math.pi * excitation_hz * t
+    return window * np.sin(phase), window * np.cos(phase)
+
+
+@lru_cache(maxsize=2)
+def _partial_products(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:
+    """(shapes [2, L], table [2, 2, 2L - 1, L + 1]) with
+    table[x, y, d + L - 1, u] = sum_{v < u} shape_x[v] shape_y[v - d] (shape_y zero outside [0, L)).
+
+    Any Gram entry of two columns, however the record cuts them, is a difference of two entries
+    (~22 MB at 85 kHz, 10 MHz; built once per excitation).
+    """
+    shapes = np.stack(burst_pair(fs_hz, excitation_hz, cycles))
+    size = shapes.shape[1]
+    padded = np.zeros((2, 3 * size))
+    padded[:, size:2 * size] = shapes
+    lags = np.arange(1 - size, size)
+    # shifted[y, d, v] = shape_y[v - d]
+    shifted = padded[:, size - lags[:, None] + np.arange(size)[None, :]]
+    table = np.zeros((2, 2, lags.size, size + 1))
+    table[..., 1:] = np.cumsum(shapes[:, None, None, :] * shifted[None, :, :, :], axis=-1)
+    shapes.setflags(write=False)
+    table.setflags(write=False)
+    return shapes, table
+
+
+def _arrival_samples(reference: Measurement, model: PathModel, positions: list[tuple[float, float]]) -> np.ndarray:
+    """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths]."""
+    z = np.array([p[0] for p in positions], dtype=np.float64)
+    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - reference.rx_angles_deg[:, None]
+    c_mm_s = reference.velocity_m_s * MM_PER_M
+    out = np.empty((reference.n_rx, len(positions), coherence_groups(model)), dtype=np.int64)
+    for index, (_group, length, _w) in enumerate(scatter_paths(model, z[None, :], rel)):
+        out[:, :, index] = np.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
+    return out
+
+
+def fit_echoes(
+    residual: np.ndarray,
+    reference: Measurement,
+    model: PathModel,
+    positions: list[tuple[float, float]],
+    *,
+    rx_mask: np.ndarray | None = None,
+) -> list[np.ndarray]:
+    """Joint least-squares fit, per receiver, of point scatterers' echoes at ``positions`` (axial_mm, angle_deg).
+
+    Returns one fitted echo array [n_rx, n] per position (their sum is the full fit). Fitting
+    the scatterers together keeps one from absorbing another's echoes where they overlap.
+    """
+    residual = np.asarray(residual, dtype=np.float64)
+    n_rx, n = residual.shape
+    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    if not positions:
+        return []
+    shapes, table = _partial_products(reference.fs_hz, reference.excitation_hz, reference.cycles)
+    size = shapes.shape[1]
+    n_pos = len(positions)
+    # Columns per receiver: (position, path, shape), shape fastest; those inside the record first.
+    starts = np.repeat(_arrival_samples(reference, model, positions).reshape(n_rx, -1), 2, axis=1)
+    kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
+    owner = np.repeat(np.arange(n_pos), starts.shape[1] // n_pos)[None, :].repeat(n_rx, axis=0)
+    valid = (starts < n) & (starts + size > 0) & mask[:, None]
+    order = np.argsort(~valid, axis=1, kind="stable")[:, : max(1, int(valid.sum(axis=1).max()))]
+    starts, kind, owner, valid = (np.take_along_axis(x, order, axis=1) for x in (starts, kind, owner, valid))
+    starts = np.where(valid, starts, 0)
+    # Gram: overlap of each pair inside the record, as a difference of partial products.
+    ka, kb = starts[:, :, None], starts[:, None, :]
+    lo = np.maximum(np.maximum(ka, kb), 0)
+    hi = np.minimum(np.minimum(ka, kb) + size, n)
+    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
+    xa, xb = kind[:, :, None], kind[:, None, :]
+    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
+    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
+                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
+    # Right-hand side: each column's correlation with the residual, i.e. the matched filter at its start.
+    n_fft = sp_fft.next_fast_len(n + size, real=True)
+    spectrum = sp_fft.rfft(residual, n_fft, axis=1)
+    correlation = sp_fft.irfft(spectrum[None, :, :] * np.conj(sp_fft.rfft(shapes, n_fft, axis=1))[:, None, :],
+                               n_fft, axis=2)  # [shape, m, lag mod n_fft]
+    rhs = np.where(valid, correlation[kind, np.arange(n_rx)[:, None], starts % n_fft], 0.0)
+    coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
+    # Each position's echoes: impulses of the coefficients at the column starts, convolved with the shapes.
+    impulses = np.zeros((n_pos, 2, n_rx, n_fft))
+    rows = np.broadcast_to(np.arange(n_rx)[:, None], starts.shape)
+    np.add.at(impulses, (owner, kind, rows, starts % n_fft), np.where(valid, coef, 0.0))
+    echoes = sp_fft.irfft(np.einsum("pxmf,xf->pmf", sp_fft.rfft(impulses, n_fft, axis=-1),
+                                    sp_fft.rfft(shapes, n_fft, axis=1)), n_fft, axis=-1)
+    return [np.ascontiguousarray(e[:, :n]) for e in echoes]
+
+
+def literal_fit_echoes(
+    residual: np.ndarray,
+    reference: Measurement,
+    model: PathModel,
+    positions: list[tuple[float, float]],
+    *,
+    rx_mask: np.ndarray | None = None,
+) -> list[np.ndarray]:
+    """The same fit with every column written out in full, receiver by receiver: the test oracle."""
+    residual = np.asarray(residual, dtype=np.float64)
+    n_rx, n = residual.shape
+    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    in_phase, quadrature = burst_pair(reference.fs_hz, reference.excitation_hz, reference.cycles)
+    c_mm_s = reference.velocity_m_s * MM_PER_M
+    fitted = [np.zeros_like(residual) for _ in positions]
+    for m in range(n_rx):
+        if not mask[m]:
+            continue
+        columns, owner = [], []
+        for p, (axial_mm, angle_deg) in enumerate(positions):
+            rel = angle_deg - float(reference.rx_angles_deg[m])
+            for _group, length, _w in scalar_paths(model, axial_mm, rel):
+                k = math.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
+                lo, hi = max(k, 0), min(k + in_phase.size, n)
+                if hi <= lo:
+                    continue
+                for shape in (in_phase, quadrature):
+                    col = np.zeros(n)
+                    col[lo:hi] = shape[lo - k : hi - k]
+                    columns.append(col)
+                    owner.append(p)
+        if not columns:
+            continue
+        design = np.stack(columns, axis=1)
+        coef, *_ = np.linalg.lstsq(design.T @ design, design.T @ residual[m], rcond=FIT_RCOND)
+        owner_arr = np.asarray(owner)
+        for p in range(len(positions)):
+            sel = owner_arr == p
+            if sel.any():
+                fitted[p][m] = design[:, sel] @ coef[sel]
+    return fitted
