@@ -49,6 +49,12 @@ class ThresholdSettings(_Section):
     )
     false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement, for the calibrated bound")
     hysteresis_count: int = Field(3, ge=1, description="M consecutive exceedances to flag damage, M below to clear")
+    floor: float | None = Field(
+        None,
+        ge=0,
+        description="a calibrated threshold is never below this; None: the imaging method's documented default "
+        "(set from a +-2 degC campaign), 0: no floor",
+    )
 
     @model_validator(mode="after")
     def _absolute_needs_a_value(self) -> "ThresholdSettings":

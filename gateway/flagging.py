@@ -79,10 +79,15 @@ def calibrated_threshold(peaks: list[float], false_alarm_rate: float) -> float:
     return math.exp(bound)
 
 
-def threshold_for(settings: ThresholdSettings, calibration_peaks: list[float]) -> float | None:
-    """The node's threshold, or None while a calibrated threshold still lacks readings."""
+def threshold_for(settings: ThresholdSettings, calibration_peaks: list[float], floor: float = 0.0) -> float | None:
+    """The node's threshold, or None while a calibrated threshold still lacks readings.
+
+    A calibrated threshold is raised to ``floor``: a short calibration sees the temperature of
+    a few minutes only, and the compensation leaves a residual that grows with the daily swing.
+    """
     if settings.mode == "absolute":
         return float(settings.absolute)
     if len(calibration_peaks) < settings.calibration_count:
         return None
-    return calibrated_threshold(calibration_peaks[: settings.calibration_count], settings.false_alarm_rate)
+    calibrated = calibrated_threshold(calibration_peaks[: settings.calibration_count], settings.false_alarm_rate)
+    return max(calibrated, floor)

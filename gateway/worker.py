@@ -38,6 +38,7 @@ from gateway.node_client import (
     ProtocolMismatch,
 )
 from gateway.watchdog import Heartbeats
+from imaging.detection import default_threshold
 from protocol.messages import ConfigureReply, InfoReply
 from sqlalchemy import func, select
 
@@ -317,10 +318,13 @@ class NodeWorker:
                 .limit(settings.calibration_count)
             ).all()
             peaks = [float(p) for p in rows]
-        value = threshold_for(settings, peaks)
+        floor = settings.floor
+        if floor is None:
+            floor = default_threshold(self.settings.imaging.method, self.settings.imaging.feature)
+        value = threshold_for(settings, peaks, floor)
         if value is not None and settings.mode == "calibrated":
-            log.info("threshold calibrated: %.4g from %d baseline-condition peak DIs (median %.4g)",
-                     value, len(peaks), statistics.median(peaks))
+            log.info("threshold calibrated: %.4g from %d baseline-condition peak DIs (median %.4g, floor %.4g)",
+                     value, len(peaks), statistics.median(peaks), floor)
         self._threshold_cache = (baseline_measurement_id, value)
         return value
 

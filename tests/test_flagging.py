@@ -96,6 +96,14 @@ def test_calibration_needs_two_readings():
         calibrated_threshold([1.0, math.nan], 1e-3)
 
 
+def test_calibrated_threshold_is_never_below_the_floor():
+    s = ThresholdSettings(mode="calibrated", calibration_count=5)
+    peaks = [1.0, 1.01, 0.99, 1.0, 1.0]
+    assert threshold_for(s, peaks, floor=0.0) < 2.0
+    assert threshold_for(s, peaks, floor=2.0) == 2.0
+    assert threshold_for(ThresholdSettings(mode="absolute", absolute=1.5), [], floor=2.0) == 1.5
+
+
 def test_fewer_than_five_calibration_readings_is_a_config_error():
     with pytest.raises(ValueError, match="calibration_count"):
         ThresholdSettings(mode="calibrated", calibration_count=3)

@@ -13,6 +13,7 @@ from sqlalchemy import func, select
 from db.database import open_database
 from db.measurements import load_traces
 from db.models import BaselineRow, DetectionRow, DiMapRow, MeasurementKind, MeasurementRow, NodeRow, StateChangeRow
+from imaging.detection import default_threshold
 
 from process_harness import gateway_config, start_gateway, start_mock_nodes, wait_for_links, wait_until
 
@@ -231,3 +232,46 @@ def test_systemd_gets_ready_and_watchdog_pings(run_dir):
         sock.close()
         gw.close()
         mock.close()
+
+
+DRIFTING_NODE = """
+[[nodes]]
+node_id = "{id}"
+seed = {seed}
+[nodes.temperature]
+mean_c = 20.0
+daily_amplitude_c = 2.0
+period_s = 40.0
+jitter_c = 0.05
+"""
+
+
+def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
+    """+-2 degC over a 40 s 'day': compensation keeps sound pipes below the documented default threshold.
+
+    The threshold is fixed (absolute, the method's default) rather than calibrated, so that a
+    calibration which happened to see the drift cannot hide a compensation failure.
+    """
+    ids = ["drift-a", "drift-b"]
+    scenario = run_dir / "s.toml"
+    scenario.write_text("".join(DRIFTING_NODE.format(id=n, seed=300 + i) for i, n in enumerate(ids)))
+    fixed = {"mode": "absolute", "absolute": default_threshold("multipath", "analytic"), "hysteresis_count": 2}
+    mock, config, url = start_fleet(run_dir, scenario, ids, threshold=fixed)
+    gw = start_gateway(config, run_dir)
+    try:
+        wait_until(lambda: all(counts(url).get(n, 0) >= 45 for n in ids), 200, 1.0,
+                   what="45 measurements per node (over a full temperature cycle)")
+    finally:
+        gw.close()
+        mock.close()
+    db = open_database(url, upgrade=False)
+    with db.session() as s:
+        flagged = s.scalars(select(StateChangeRow).where(StateChangeRow.to_state.in_(["suspected", "damage"]))).all()
+        assert flagged == [], [(c.node_id, c.to_state.value) for c in flagged]
+        temps = s.scalars(select(MeasurementRow.temperature_c)).all()
+        assert max(temps) - min(temps) > 2.0  # the drift really happened
+        states = {n: s.get(NodeRow, n).state.value for n in ids}
+        assert set(states.values()) <= {"ok"}, states
+        peaks = s.scalars(select(DetectionRow.peak_di)).all()
+        assert max(peaks) < fixed["absolute"]
+    db.dispose()
