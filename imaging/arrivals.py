@@ -6,7 +6,9 @@ is at ``t0_s + k / fs_hz``. An arrival "at sample k" means the burst *starts* at
 """
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,8 +69,14 @@ def direct_arrival(m: Measurement, *, search_s: float | None = None) -> DirectAr
 
     Searches +- ``search_s`` (default: one burst length) around the prediction, refines the peak
     by a parabola, and returns amplitude in trace units (burst-amplitude equivalent).
+    With the default search the result is memoised by the record's content (``_summary``).
     """
-    env = matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles)
+    if search_s is None:
+        return _summary(m)[0]
+    return _direct_arrival(m, matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles), search_s)
+
+
+def _direct_arrival(m: Measurement, env: np.ndarray, search_s: float | None) -> DirectArrival:
     scale = burst_autocorrelation_peak(m.fs_hz, m.excitation_hz, m.cycles)
     predicted_s = m.tx_rx_distance_mm / (m.velocity_m_s * MM_PER_M)
     half_s = search_s if search_s is not None else m.cycles / m.excitation_hz
@@ -84,7 +92,37 @@ def direct_arrival(m: Measurement, *, search_s: float | None = None) -> DirectAr
     safe = np.where(curv < 0, curv, -1.0)
     offset = np.where(curv < 0, np.clip(0.5 * (left - right) / safe, -0.5, 0.5), 0.0)
     time_s = m.t0_s + (lo + k + offset) / m.fs_hz
-    return DirectArrival(peak / scale, time_s)
+    amplitude, time_s = peak / scale, time_s
+    amplitude.setflags(write=False)
+    time_s.setflags(write=False)
+    return DirectArrival(amplitude, time_s)
+
+
+_SUMMARY_MEMO: OrderedDict[tuple, tuple[DirectArrival, np.ndarray]] = OrderedDict()
+SUMMARY_MEMO_SIZE = 64  # records whose direct arrival and median envelope are remembered (a node's baselines)
+
+
+def _summary(m: Measurement) -> tuple[DirectArrival, np.ndarray]:
+    """(direct arrival, median matched envelope over receivers) of a record, memoised by content.
+
+    A node's baselines are analysed again with every measurement; the key is a digest of the
+    traces plus every field the result depends on, so an equal record hits and nothing stale can.
+    """
+    traces = np.ascontiguousarray(m.traces)
+    key = (hashlib.sha1(traces.view(np.uint8), usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
+           m.fs_hz, m.t0_s, m.tx_rx_distance_mm, m.velocity_m_s, m.excitation_hz, m.cycles)
+    hit = _SUMMARY_MEMO.get(key)
+    if hit is not None:
+        _SUMMARY_MEMO.move_to_end(key)
+        return hit
+    env = matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles)
+    median = np.median(env, axis=0)
+    median.setflags(write=False)
+    value = (_direct_arrival(m, env, None), median)
+    _SUMMARY_MEMO[key] = value
+    while len(_SUMMARY_MEMO) > SUMMARY_MEMO_SIZE:
+        _SUMMARY_MEMO.popitem(last=False)
+    return value
 
 
 def reference_amplitude(m: Measurement) -> float:
@@ -104,7 +142,7 @@ def end_reflection_coefficients(m: Measurement) -> tuple[float, float]:
     """
     if m.pipe_length_mm is None or m.tx_axial_mm is None:
         return 0.0, 0.0
-    env = np.median(matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles), axis=0)
+    env = _summary(m)[1]
     direct = reference_amplitude(m) * burst_autocorrelation_peak(m.fs_hz, m.excitation_hz, m.cycles)
     c_mm_s = m.velocity_m_s * MM_PER_M
     d = m.tx_rx_distance_mm

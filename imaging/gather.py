@@ -1,4 +1,6 @@
-"""The inner loop of the all-paths map: add one receiver's weighted feature samples into the group sums.
+"""Inner loops of the all-paths map (imaging/multipath.py), compiled with numba when it is installed.
+
+1. The cached-table gather: add one receiver's weighted feature samples into the group sums.
 
     out[g(p), i, (j + roll) % n_angle] += w[p, i n_angle + j] * row[idx[p, i n_angle + j]]
 
@@ -9,9 +11,14 @@ two slice-adds). ``accumulate`` uses the kernel when numba is importable and
 PIPESENTRY_NUMBA is not "0"; tests hold the two equal. The kernels are compiled eagerly for
 the two signatures used (complex64 and float32 features) when this module is imported:
 ~1-2 s once per machine, then loaded from numba's on-disk cache (tens of ms).
+
+2. ``local_sums_compiled``: a small grid's group sums and squared weights computed path by
+path with scalar math, exactly as the literal oracle does (imaging/multipath.py
+``local_multipath_pixels`` falls back to its vectorised numpy form without numba).
 """
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
@@ -49,12 +56,26 @@ def _accumulate_loops(out, row, groups, idx, w, roll):  # pragma: no cover - com
                 out[g, i, j - split] += w[p, base + j] * row[idx[p, base + j]]
 
 
-def _compile():
+def _numba():
     if os.environ.get("PIPESENTRY_NUMBA", "1") == "0":
         return None
     try:
         import numba
     except ImportError:
+        return None
+    return numba
+
+
+def _njit(numba, signatures, function):
+    try:
+        return numba.njit(signatures, cache=True, nogil=True)(function)
+    except RuntimeError:  # no writable cache location: compile in memory instead
+        return numba.njit(signatures, cache=False, nogil=True)(function)
+
+
+def _compile():
+    numba = _numba()
+    if numba is None:
         return None
     t = numba.types
     tables = (t.Array(t.int64, 1, "C", readonly=True), t.Array(t.int32, 2, "C", readonly=True),
@@ -63,10 +84,7 @@ def _compile():
         t.void(t.complex128[:, :, ::1], t.complex64[::1], *tables),
         t.void(t.float64[:, :, ::1], t.float32[::1], *tables),
     ]
-    try:
-        return numba.njit(signatures, cache=True, nogil=True)(_accumulate_loops)
-    except RuntimeError:  # no writable cache location: compile in memory instead
-        return numba.njit(signatures, cache=False, nogil=True)(_accumulate_loops)
+    return _njit(numba, signatures, _accumulate_loops)
 
 
 accumulate_compiled = _compile()
@@ -85,3 +103,54 @@ def accumulate(out: np.ndarray, row: np.ndarray, groups: np.ndarray, idx: np.nda
         accumulate_compiled(out, row, groups, idx, w, int(roll))
     else:
         accumulate_numpy(out, row, groups, idx, w, roll)
+
+
+def _local_loops(feature, rows, rx_angles_deg, axial_mm, angle_deg, offset, sign, image, factor, wraps,
+                 circumference_mm, wavelength_mm, polarization, c_mm_s, t0_s, fs_hz, power, groups,
+                 weight_sq):  # pragma: no cover - compiled by numba
+    n = feature.shape[1]
+    for r in range(rows.shape[0]):
+        m = rows[r]
+        for jj in range(angle_deg.shape[0]):
+            diff = (angle_deg[jj] - rx_angles_deg[m] + 180.0) % 360.0 - 180.0
+            if diff == -180.0:
+                diff = 180.0
+            arc = diff * circumference_mm / 360.0
+            other = arc - circumference_mm if arc >= 0 else arc + circumference_mm
+            for ii in range(axial_mm.shape[0]):
+                z = axial_mm[ii]
+                for f in range(offset.shape[0]):
+                    incident = abs(offset[f] + sign[f] * z)
+                    dz = image[f] - z
+                    for wrap in range(wraps):
+                        leg = arc if wrap == 0 else other
+                        r_mm = math.hypot(dz, leg)
+                        w = factor[f] * math.sqrt(wavelength_mm / max(r_mm, 0.5 * wavelength_mm))
+                        if polarization and r_mm > 0:
+                            w *= abs(dz) / r_mm
+                        k = math.floor(((incident + r_mm) / c_mm_s - t0_s) * fs_hz + 0.5)
+                        if 0 <= k < n:
+                            g = f * wraps + wrap
+                            wp = w
+                            for _ in range(power - 1):
+                                wp *= w
+                            groups[g, ii, jj] += wp * feature[m, k]
+                            weight_sq[g, ii, jj] += wp * wp
+
+
+def _compile_local():
+    numba = _numba()
+    if numba is None:
+        return None
+    t = numba.types
+    tail = (t.Array(t.int64, 1, "C", readonly=True), t.float64[::1], t.float64[::1], t.float64[::1], t.float64[::1],
+            t.float64[::1], t.float64[::1], t.float64[::1], t.int64, t.float64, t.float64, t.boolean, t.float64,
+            t.float64, t.float64, t.int64)
+    signatures = [
+        t.void(t.Array(t.complex128, 2, "C", readonly=True), *tail, t.complex128[:, :, ::1], t.float64[:, :, ::1]),
+        t.void(t.Array(t.float64, 2, "C", readonly=True), *tail, t.float64[:, :, ::1], t.float64[:, :, ::1]),
+    ]
+    return _njit(numba, signatures, _local_loops)
+
+
+local_sums_compiled = _compile_local()

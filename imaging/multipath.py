@@ -36,7 +36,7 @@ import numpy as np
 from imaging.arrivals import end_reflection_coefficients, reference_amplitude
 from imaging.dimap import DIMap, check_compatible, default_window_samples
 from imaging.features import residual_feature
-from imaging.gather import accumulate
+from imaging.gather import accumulate, local_sums_compiled
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, stacked_paths
@@ -205,23 +205,34 @@ def local_multipath_pixels(
     power: int = 1,
     rx_mask: np.ndarray | None = None,
     normalise: str = "snr",
+    compiled: bool = True,
 ) -> np.ndarray:
     """The same map as ``multipath_pixels`` for a small one-off grid (a peak's neighbourhood, one pixel).
 
-    Nothing is cached: the paths of every receiver and pixel are computed here, in double
-    precision, and the feature gathered directly. Cost grows as n_rx x n_paths x n_pixels, so
+    Nothing is cached: every receiver's paths to every pixel are computed here in double
+    precision and the feature gathered directly, by the compiled kernel of imaging/gather.py
+    (``compiled`` and numba installed) or in numpy. Cost grows as n_rx x n_paths x n_pixels:
     keep the grid to a few hundred pixels.
     """
     feature = np.asarray(feature)
     rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
     coherent = np.iscomplexobj(feature)
-    rows = np.flatnonzero(mask)
-    n = feature.shape[1]
-    c_mm_s = velocity_m_s * MM_PER_M
+    rows = np.flatnonzero(mask).astype(np.int64)
     n_groups = coherence_groups(model)
     groups = np.zeros((n_groups,) + grid.shape, dtype=np.complex128 if coherent else np.float64)
     weight_sq = np.zeros((n_groups,) + grid.shape)
-    if rows.size:
+    c_mm_s = velocity_m_s * MM_PER_M
+    if rows.size and compiled and local_sums_compiled is not None:
+        families = model.families()
+        offset, sign, image, factor = (np.array([getattr(f, name) for f in families], dtype=np.float64)
+                                       for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
+        data = np.ascontiguousarray(feature, dtype=np.complex128 if coherent else np.float64)
+        local_sums_compiled(data, rows, rx_angles_deg, np.ascontiguousarray(grid.axial_mm),
+                            np.ascontiguousarray(grid.angle_deg), offset, sign, image, factor, model.wraps,
+                            float(model.circumference_mm), float(model.wavelength_mm), bool(model.polarization),
+                            float(c_mm_s), float(t0_s), float(fs_hz), int(power), groups, weight_sq)
+    elif rows.size:
+        n = feature.shape[1]
         rel = grid.angle_deg[None, None, :] - rx_angles_deg[rows, None, None]
         family, length, weight = stacked_paths(model, grid.axial_mm[None, :, None], rel)  # [P, n_rx, n_ax, n_an]
         k = np.floor((length / c_mm_s - t0_s) * fs_hz + 0.5)

@@ -176,13 +176,16 @@ def _paper(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndar
     return di_map, peak, defects
 
 
-def _multipath(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndarray,
+def _multipath(match: BaselineMatch, entry: Measurement, current: Measurement, grid: Grid, mask: np.ndarray,
                settings: AssessSettings, threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
-    model = path_model_for(match.baseline, wall_mm=settings.wall_mm, model_ends=settings.model_ends)
+    # End reflections and the reference amplitude are read off the library ``entry`` itself: a
+    # stretch of <= 0.5 % moves its arrivals, not their amplitudes, and the entry's values are
+    # memoised (imaging/arrivals.py), so a node's baselines are analysed once, not per measurement.
+    model = path_model_for(entry, wall_mm=settings.wall_mm, model_ends=settings.model_ends)
     residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     first, found, first_peak = find_defects(
         residual, match.baseline, grid, model, feature=settings.feature,
-        reference_amplitude_v=reference_amplitude(match.baseline), threshold=threshold,
+        reference_amplitude_v=reference_amplitude(entry), threshold=threshold,
         max_defects=settings.max_defects, rx_mask=mask, circumference_mm=model.circumference_mm,
     )
     peak = found[0].estimate if found else first_peak
@@ -223,7 +226,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     if settings.method == "paper":
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
-        di_map, peak, defects = _multipath(match, current, grid, mask, settings, threshold)
+        di_map, peak, defects = _multipath(match, baselines[match.index], current, grid, mask, settings, threshold)
     elapsed = (time.perf_counter() - start) * 1e3
     return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed)
 
