@@ -26,7 +26,7 @@ import numpy as np
 
 def accumulate_numpy(out: np.ndarray, row: np.ndarray, groups: np.ndarray, idx: np.ndarray, w: np.ndarray,
                      roll: int) -> None:
-    """The sum above, in numpy: ``out`` [G, n_axial, n_angle] (complex128/float64) is updated in place."""
+    """The sum above, in numpy: ``out`` [G, n_axial, n_angle] (``row``'s dtype) is updated in place."""
     n_angle = out.shape[2]
     roll = int(roll) % n_angle
     partial = np.zeros((out.shape[0], out.shape[1] * n_angle), dtype=row.dtype)
@@ -81,8 +81,8 @@ def _compile():
     tables = (t.Array(t.int64, 1, "C", readonly=True), t.Array(t.int32, 2, "C", readonly=True),
               t.Array(t.float32, 2, "C", readonly=True), t.int64)
     signatures = [
-        t.void(t.complex128[:, :, ::1], t.complex64[::1], *tables),
-        t.void(t.float64[:, :, ::1], t.float32[::1], *tables),
+        t.void(t.complex64[:, :, ::1], t.complex64[::1], *tables),
+        t.void(t.float32[:, :, ::1], t.float32[::1], *tables),
     ]
     return _njit(numba, signatures, _accumulate_loops)
 
@@ -97,8 +97,9 @@ def compiled() -> bool:
 
 def accumulate(out: np.ndarray, row: np.ndarray, groups: np.ndarray, idx: np.ndarray, w: np.ndarray,
                roll: int) -> None:
-    """The module's sum, by the compiled kernel when available. Argument dtypes: ``out`` complex128 with
-    a complex64 ``row``, or float64 with float32; ``groups`` int64; ``idx`` int32 in [0, row.size); ``w`` float32."""
+    """The module's sum, by the compiled kernel when available. Argument dtypes: ``out`` and ``row``
+    complex64, or both float32 (single precision: sums of a few dozen terms, ~1e-7 relative);
+    ``groups`` int64; ``idx`` int32 in [0, row.size); ``w`` float32."""
     if accumulate_compiled is not None:
         accumulate_compiled(out, row, groups, idx, w, int(roll))
     else:

@@ -174,8 +174,8 @@ def multipath_pixels(
 
     Gather tables are cached per geometry (a node's map grid), so use this for a node's
     recurring grid and ``local_multipath_pixels`` for one-off small grids. The feature is
-    gathered in single precision (complex64/float32: half the memory traffic) and summed in
-    double (imaging/gather.py). Relative error ~1e-6 of the map's scale.
+    gathered and summed in single precision (complex64/float32: half the memory traffic;
+    imaging/gather.py). Relative error ~1e-6 of the map's scale.
     """
     feature = np.asarray(feature)
     rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
@@ -185,7 +185,7 @@ def multipath_pixels(
     padded = np.zeros((n_rx, n + 1), dtype=np.complex64 if coherent else np.float32)
     padded[:, :n] = feature
     plan = tuple(_receiver_plan(grid, rx_angles_deg))
-    total = np.zeros((coherence_groups(model),) + grid.shape, dtype=np.complex128 if coherent else np.float64)
+    total = np.zeros((coherence_groups(model),) + grid.shape, dtype=padded.dtype)
     for m, (angle, roll) in enumerate(plan):
         if mask[m]:
             table = _cached_table(grid, angle, *geometry)
