@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sp_fft
-from scipy import signal as sp_signal
 
 from imaging.measurement import Measurement
 from imaging.timing import MM_PER_M
@@ -40,9 +39,22 @@ def matched_filter(traces: np.ndarray, burst: np.ndarray, *, axis: int = -1) -> 
     return np.moveaxis(out, -1, axis)
 
 
+def analytic_signal(x: np.ndarray, *, axis: int = -1) -> np.ndarray:
+    """x + i H{x} along ``axis``: scipy.signal.hilbert's result (its test oracle) from a real FFT.
+
+    The one-sided spectrum (DC and Nyquist once, positive frequencies twice) is the real FFT's
+    output, so the forward transform is real: about a quarter less work than hilbert's complex one.
+    """
+    x = np.moveaxis(np.asarray(x, dtype=np.float64), axis, -1)
+    n = x.shape[-1]
+    spec = sp_fft.rfft(x, axis=-1)
+    spec[..., 1:(n + 1) // 2] *= 2.0
+    return np.moveaxis(sp_fft.ifft(spec, n, axis=-1), -1, axis)
+
+
 def envelope(x: np.ndarray, *, axis: int = -1) -> np.ndarray:
     """Hilbert envelope |x + i H{x}| along ``axis``."""
-    return np.abs(sp_signal.hilbert(np.asarray(x, dtype=np.float64), axis=axis))
+    return np.abs(analytic_signal(x, axis=axis))
 
 
 def matched_envelope(traces: np.ndarray, fs_hz: float, excitation_hz: float, cycles: int) -> np.ndarray:

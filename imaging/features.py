@@ -19,9 +19,8 @@ from typing import Literal
 
 import numpy as np
 
-from scipy import signal as sp_signal
 
-from imaging.arrivals import burst_autocorrelation_peak, hann_burst, matched_envelope, matched_filter
+from imaging.arrivals import analytic_signal, burst_autocorrelation_peak, hann_burst, matched_envelope, matched_filter
 from imaging.dimap import windowed_energy
 
 Feature = Literal["envelope", "squared", "analytic"]
@@ -70,7 +69,7 @@ def residual_feature(
     elif feature == "analytic":
         scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * reference_amplitude
         burst = hann_burst(fs_hz, excitation_hz, cycles)
-        return sp_signal.hilbert(matched_filter(residual, burst), axis=-1) / scale
+        return analytic_signal(matched_filter(residual, burst), axis=-1) / scale
     elif feature == "squared":
         burst = hann_burst(fs_hz, excitation_hz, cycles)
         w = int(window_samples or burst.size)

@@ -222,7 +222,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     if isinstance(match, NoValidBaseline):
         elapsed = (time.perf_counter() - start) * 1e3
         return Assessment(settings.method, settings.feature, threshold, None, None, [], None, match, faults, elapsed)
-    grid = settings.grid or default_grid(settings.method, current.tx_rx_distance_mm)
+    grid = settings.grid or default_grid(settings.method, current.tx_rx_distance_mm, current.rx_angles_deg)
     if settings.method == "paper":
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
@@ -231,12 +231,24 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed)
 
 
-def default_grid(method: str, tx_rx_distance_mm: float) -> Grid:
-    """1 mm x 1 deg for the paper's method; 2 mm x 2 deg for multipath (same accuracy on the
-    benchmark, a quarter of the time: its peaks are tens of mm wide and refined below a pixel)."""
+MULTIPATH_STEP_MM = 4.0  # the multipath map (search and storage); peaks are refined at 1 mm x 1 deg
+MULTIPATH_MAX_STEP_DEG = 4.0
+
+
+def default_grid(method: str, tx_rx_distance_mm: float, rx_angles_deg: Sequence[float] | None = None) -> Grid:
+    """1 mm x 1 deg for the paper's method. For multipath 4 mm x (at most) 4 deg: its peaks are
+    tens of mm wide, and every peak is refined on a local 1 mm x 1 deg grid (imaging/multidefect.py).
+    The angle step divides the receiver spacing of an evenly spaced ring (3.75 deg for 8 or 16
+    receivers), so every receiver shares one gather table, rolled (imaging/multipath.py)."""
     if method == "paper":
         return Grid.default(tx_rx_distance_mm)
-    return Grid.default(tx_rx_distance_mm, axial_step_mm=4.0, angle_step_deg=4.0)
+    step_deg = MULTIPATH_MAX_STEP_DEG
+    if rx_angles_deg is not None and len(rx_angles_deg) > 1:
+        spacing = np.diff(np.sort(np.mod(np.asarray(rx_angles_deg, dtype=np.float64), 360.0)))
+        even = 360.0 / len(rx_angles_deg)
+        if np.allclose(spacing, even, atol=1e-6):
+            step_deg = even / math.ceil(even / MULTIPATH_MAX_STEP_DEG - 1e-9)
+    return Grid.default(tx_rx_distance_mm, axial_step_mm=MULTIPATH_STEP_MM, angle_step_deg=step_deg)
 
 
 def _compatible(baseline: Measurement, current: Measurement) -> bool:

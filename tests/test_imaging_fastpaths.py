@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy import interpolate as sp_interpolate
+from scipy import signal as sp_signal
 
 import imaging.multipath as multipath
 from imaging import gather
@@ -11,7 +12,7 @@ from imaging.echofit import fit_echoes, literal_fit_echoes
 from imaging.grid import Grid
 from imaging.multidefect import find_defects
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
-from imaging.arrivals import reference_amplitude
+from imaging.arrivals import analytic_signal, reference_amplitude
 
 from synthetic import baseline_and_scatterers, measurement
 from test_imaging_multipath import random_problem
@@ -122,3 +123,10 @@ def test_coarse_to_fine_search_finds_the_peak_of_the_full_fine_map():
     fine = find_defects(residual, base, Grid.default(400.0, 1.0, 1.0), model, **common)[2]
     assert abs(coarse.axial_mm - fine.axial_mm) < 0.5 and abs(coarse.angle_deg - fine.angle_deg) < 0.5
     assert coarse.di == pytest.approx(fine.di, rel=1e-5)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 300), st.integers(1, 3))
+def test_analytic_signal_equals_scipy_hilbert(seed, n, rows):
+    x = np.random.default_rng(seed).standard_normal((rows, n))
+    np.testing.assert_allclose(analytic_signal(x), sp_signal.hilbert(x), rtol=0, atol=1e-12 * max(1.0, np.abs(x).max()))
