@@ -105,9 +105,15 @@ class Resampler:
         w3 = f3 / 6.0
         w1 = 2.0 / 3.0 - f * f + 0.5 * f3
         w2 = 1.0 - w0 - w1 - w3
-        w = np.where(outside[:, None], 0.0, np.stack([w0, w1, w2, w3], axis=1))  # [n_points, 4]
         c = self._coef
-        out = (c[i] * w[:, 0:1] + c[i + 1] * w[:, 1:2]) + (c[i + 2] * w[:, 2:3] + c[i + 3] * w[:, 3:4])
+        # Two reused buffers (no temporary per term: these arrays are large).
+        out = np.take(c, i, axis=0)
+        out *= np.where(outside, 0.0, w0)[:, None]
+        term = np.empty_like(out)
+        for shift, weight in ((1, w1), (2, w2), (3, w3)):
+            np.take(c, i + shift, axis=0, out=term)
+            term *= np.where(outside, 0.0, weight)[:, None]
+            out += term
         return np.moveaxis(out.reshape(times_s.shape + (c.shape[1],)), -1, 0)
 
 
