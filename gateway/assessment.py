@@ -64,6 +64,39 @@ class BaselineLibrary:
         return out
 
 
+LIBRARY_MARGIN = 0.5  # a measurement joins the library only if its peak DI is below half the threshold
+
+
+def joins_library(
+    node: NodeSettings,
+    *,
+    state: NodeState,
+    peak_di: float | None,
+    threshold: float | None,
+    temperature_c: float | None,
+    library: list[Measurement],
+    baseline_age_days: float,
+) -> bool:
+    """Whether a monitor measurement becomes another baseline of the node's OBS library.
+
+    Only a clearly healthy reading (state ok, peak DI below half the threshold), at a
+    temperature at least ``library_temperature_step_c`` from every baseline in the library,
+    while the library has room and the active baseline is younger than
+    ``library_growth_days``: the library learns the seasons without learning a growing defect.
+    """
+    im = node.imaging
+    if im.library_temperature_step_c <= 0 or len(library) >= im.library_size:
+        return False
+    if baseline_age_days > im.library_growth_days or state != NodeState.OK:
+        return False
+    if peak_di is None or threshold is None or not peak_di < LIBRARY_MARGIN * threshold:
+        return False
+    if temperature_c is None or not math.isfinite(temperature_c):
+        return False
+    known = [b.temperature_c for b in library if math.isfinite(b.temperature_c)]
+    return all(abs(temperature_c - t) >= im.library_temperature_step_c for t in known)
+
+
 def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float | None) -> AssessSettings:
     """The node's imaging settings; the gateway's damage threshold is also the detection threshold."""
     im = node.imaging

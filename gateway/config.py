@@ -74,6 +74,12 @@ class ImagingSettings(_Section):
     )
     max_defects: int = Field(3, ge=1, le=16)
     library_size: int = Field(24, ge=1, le=256, description="baselines kept in the node's OBS library")
+    library_temperature_step_c: float = Field(
+        2.0, ge=0, description="a healthy measurement this far (degC) from every library baseline joins it; 0: off"
+    )
+    library_growth_days: float = Field(
+        30.0, gt=0, description="the library grows only this long after the active baseline was set"
+    )
 
 
 class GeometryOverride(_Section):

@@ -27,7 +27,7 @@ from db.records import DiMapInput, MapGrid, NodeInfo, StateChangeInput
 from alerts.config import AlertingSettings
 from alerts.events import state_change_event
 from gateway.config import NodeSettings
-from gateway.assessment import BaselineLibrary, assess_settings, detection_input, run_assessment
+from gateway.assessment import BaselineLibrary, assess_settings, detection_input, joins_library, run_assessment
 from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
 from gateway.logs import node_context
 from gateway.measurement_build import NodeGeometryView, effective_geometry, measurement_from_codes
@@ -358,6 +358,7 @@ class NodeWorker:
             library_ids = self.library.ids(session, self.settings.id)
             library = self.library.load(session, library_ids, conn.view)
             threshold = self._threshold(session, baseline_id)
+            baseline_set_at = active_baseline(session, self.settings.id).created_at
         result = run_assessment(current, library, assess_settings(self.settings, threshold, conn.view.wall_mm))
         maps = []
         if result.di_map is not None:
@@ -402,10 +403,19 @@ class NodeWorker:
             new_state = new_flag.state
             change = StateChangeInput(prev_state, new_state) if new_state != prev_state else None
             detection = detection_input(result, new_state, threshold, library_ids)
+            joins = joins_library(
+                self.settings,
+                state=new_state,
+                peak_di=detection.peak_di,
+                threshold=threshold,
+                temperature_c=_finite_or_none(transfer.temperature_c),
+                library=library,
+                baseline_age_days=(utc_now() - baseline_set_at).total_seconds() / 86400.0,
+            )
             row = store_measurement(
                 session,
                 self.settings.id,
-                kind=MeasurementKind.MONITOR,
+                kind=MeasurementKind.BASELINE if joins else MeasurementKind.MONITOR,
                 **self._acquisition_fields(acq, transfer, current),
                 di_maps=maps,
                 detection=detection,
@@ -429,6 +439,9 @@ class NodeWorker:
             record_node_health(session, self.settings.id, online=True, error_counters=node_errors)
             measurement_id = row.id
         self.flag = new_flag
+        if joins:
+            log.info("measurement %d joins the baseline library at %.2f degC (%d baselines)",
+                     measurement_id, transfer.temperature_c, len(library) + 1)
         if change is not None:
             log.warning("state %s -> %s", change.from_state.value, change.to_state.value,
                         extra={"from_state": change.from_state.value, "to_state": change.to_state.value})

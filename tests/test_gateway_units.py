@@ -8,12 +8,14 @@ import sqlite3
 import subprocess
 import sys
 import threading
+from dataclasses import replace
 
 import pytest
 from sqlalchemy import event, func, select
 
 from db.database import open_database
-from db.models import MeasurementRow
+from db.models import MeasurementRow, NodeState
+from gateway.assessment import joins_library
 from gateway.config import ConfigError, NodeSettings, load_settings
 from gateway.logs import node_context, setup_logging
 from gateway.watchdog import Heartbeats
@@ -22,6 +24,7 @@ from mocknode.scenario import NodeScenario
 from mocknode.server import MockNodeServer
 
 from process_harness import wait_until
+from synthetic import baseline_and_scatterer
 
 GOOD = """
 [database]
@@ -177,3 +180,33 @@ def test_worker_survives_a_full_disk_and_resumes_when_space_returns(tmp_path, ca
     con.close()
     assert worker.counters.storage_errors >= 1
     db.dispose()
+
+
+def _library_at(*temps_c):
+    base, _ = baseline_and_scatterer(200, 90, n_rx=2, n_samples=100)
+    return [replace(base, temperature_c=t) for t in temps_c]
+
+
+@pytest.mark.parametrize(
+    "change, joins",
+    [
+        ({}, True),
+        ({"temperature_c": 21.0}, False),  # within 2 degC of a library baseline
+        ({"peak_di": 0.6}, False),  # not clearly healthy: above half the threshold
+        ({"state": "suspected"}, False),
+        ({"threshold": None}, False),  # still calibrating
+        ({"baseline_age_days": 45.0}, False),  # past the growth window
+        ({"temperature_c": float("nan")}, False),
+        ({"library": "full"}, False),
+    ],
+)
+def test_a_clearly_healthy_reading_at_a_new_temperature_joins_the_library(change, joins):
+    node = NodeSettings(id="n", url="loop://")
+    args = dict(state=NodeState.OK, peak_di=0.3, threshold=1.0, temperature_c=25.0,
+                library=_library_at(20.0, 22.5), baseline_age_days=3.0)
+    args.update(change)
+    if isinstance(args["state"], str):
+        args["state"] = NodeState(args["state"])
+    if args["library"] == "full":
+        args["library"] = _library_at(*[100.0 + 3 * k for k in range(node.imaging.library_size)])  # far, but full
+    assert joins_library(node, **args) is joins
