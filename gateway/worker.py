@@ -388,7 +388,8 @@ class NodeWorker:
                 # The gateway's own map is what flags damage; the node's map is for comparison.
                 log.warning("node DI map not read this cycle: %s: %s", type(exc).__name__, exc)
         for fault in result.sensor_faults:
-            log.warning("sensor fault on receiver %s: %s", fault.as_dict().get("receiver"), fault.as_dict().get("reason"))
+            log.warning("sensor fault on receiver %d (%.1f deg): %s; left out of the map",
+                        fault.rx_index, fault.rx_angle_deg, fault.kind)
         with self.db.write() as session:
             node = get_node(session, self.settings.id)
             if not self._flag_loaded:

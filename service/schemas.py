@@ -6,7 +6,7 @@ from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from db.models import DeliveryStatus, MapSource, MeasurementKind, NodeState, Role, Severity
 
@@ -41,6 +41,26 @@ class Baseline(_Out):
     deactivated_at: datetime | None
 
 
+class DefectEstimate(BaseModel):
+    """One defect found above the threshold (the strongest first)."""
+
+    axial_mm: float = Field(description="axial distance from the Tx ring")
+    angle_deg: float = Field(description="angle on the circumference, [0, 360)")
+    di: float | None = Field(None, description="its DI")
+    severity: float | None = Field(None, description="scattered amplitude relative to the direct arrival")
+    confidence: dict[str, float | None] | None = Field(None, description="score in [0, 1], peak ratio, peak widths")
+
+
+class SensorFault(BaseModel):
+    """A receiver channel whose direct arrival no longer matches its baseline: left out of the map."""
+
+    rx_index: int
+    rx_angle_deg: float | None = None
+    kind: str = Field(description="no_signal, amplitude or timing")
+    amplitude_ratio: float | None = None
+    delay_s: float | None = None
+
+
 class Detection(_Out):
     """The verdict on one monitor measurement and the estimated defect position."""
 
@@ -48,12 +68,24 @@ class Detection(_Out):
     node_id: str
     measurement_id: int
     created_at: datetime
-    peak_di: float = Field(description="peak of the gateway's DI map")
+    peak_di: float | None = Field(
+        description="peak of the gateway's DI map; null when the imaging abstained (no valid baseline)"
+    )
     threshold: float | None = Field(description="damage threshold; null while the node is calibrating")
     state: NodeState = Field(description="node state after this measurement")
-    axial_mm: float | None = Field(description="estimated defect: axial distance from the Tx ring")
-    angle_deg: float | None = Field(description="estimated defect: angle on the circumference")
+    axial_mm: float | None = Field(description="the map's peak: axial distance from the Tx ring")
+    angle_deg: float | None = Field(description="the map's peak: angle on the circumference")
     confidence: float | None
+    method: str | None = Field(None, description="imaging method: multipath or paper")
+    defects: list[DefectEstimate] = Field(default_factory=list, description="every defect above the threshold")
+    sensor_faults: list[SensorFault] = Field(default_factory=list, description="receivers left out of the map")
+    baseline_measurement_id: int | None = Field(None, description="the library baseline the map was made against")
+    stretch: float | None = Field(None, description="time-stretch applied to that baseline (temperature compensation)")
+
+    @field_validator("defects", "sensor_faults", mode="before")
+    @classmethod
+    def _none_is_empty(cls, value: Any) -> Any:
+        return [] if value is None else value
 
 
 class Node(_Out):

@@ -209,6 +209,10 @@ def test_detections_latest_first_per_node_and_fleet_wide(viewer):
     flagged = damaged[0]
     assert flagged["peak_di"] > flagged["threshold"]
     assert flagged["axial_mm"] is not None and flagged["angle_deg"] is not None
+    assert flagged["method"] == "multipath" and flagged["sensor_faults"] == []
+    strongest = flagged["defects"][0]
+    assert strongest["di"] > flagged["threshold"] and strongest["severity"] > 0
+    assert flagged["baseline_measurement_id"] is not None and abs(flagged["stretch"]) < 0.01
 
 
 def test_detection_pages_follow_cursors_without_repeats(viewer):
