@@ -116,6 +116,24 @@ def _unpack_chunk_list(cls: type, payload: bytes, offset: int) -> tuple[int, ...
     return struct.unpack_from(f"<{n}H", payload, offset + 2)
 
 
+class _ChunkListRequest(Message):
+    """A bulk read request: fixed fields, then the list of chunks to (re)send (empty = all).
+
+    Subclasses declare their fixed fields and ``chunks`` last; ``_STRUCT`` covers the fixed ones.
+    """
+
+    def _fixed(self) -> tuple:
+        return super()._fixed()[:-1]
+
+    def _tail(self) -> bytes:
+        return _pack_chunk_list(tuple(self.chunks))
+
+    @classmethod
+    def decode(cls, payload: bytes):
+        chunks = _unpack_chunk_list(cls, payload, cls._STRUCT.size)
+        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
+
+
 # ---------------------------------------------------------------- INFO (capability exchange)
 @dataclass(frozen=True)
 class InfoRequest(Message):
@@ -260,7 +278,7 @@ class AcquireReply(Message):
 
 # ---------------------------------------------------------------- READ_TRACES
 @dataclass(frozen=True)
-class ReadTracesRequest(Message):
+class ReadTracesRequest(_ChunkListRequest):
     """Raw int16 codes of one measurement; ``count`` 0 means "to the end"; no chunks = all."""
 
     TYPE: ClassVar[int] = MsgType.READ_TRACES
@@ -270,18 +288,6 @@ class ReadTracesRequest(Message):
     start: int
     count: int
     chunks: tuple[int, ...] = ()
-
-    def _fixed(self) -> tuple:
-        return super()._fixed()[:-1]
-
-    def _tail(self) -> bytes:
-        return _pack_chunk_list(tuple(self.chunks))
-
-    @classmethod
-    def decode(cls, payload: bytes) -> ReadTracesRequest:
-        size = cls._STRUCT.size
-        chunks = _unpack_chunk_list(cls, payload, size)
-        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
 
 
 @dataclass(frozen=True)
@@ -341,22 +347,11 @@ class ComputeDiReply(Message):
 
 
 @dataclass(frozen=True)
-class ReadDiRequest(Message):
+class ReadDiRequest(_ChunkListRequest):
     TYPE: ClassVar[int] = MsgType.READ_DI
     _STRUCT: ClassVar[struct.Struct] = struct.Struct("<I")
     di_id: int
     chunks: tuple[int, ...] = ()
-
-    def _fixed(self) -> tuple:
-        return super()._fixed()[:-1]
-
-    def _tail(self) -> bytes:
-        return _pack_chunk_list(tuple(self.chunks))
-
-    @classmethod
-    def decode(cls, payload: bytes) -> ReadDiRequest:
-        chunks = _unpack_chunk_list(cls, payload, cls._STRUCT.size)
-        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
 
 
 @dataclass(frozen=True)
