@@ -8,8 +8,8 @@ Gram matrix below FIT_RCOND of the largest are dropped), and each position's fit
 are returned separately.
 
 ``fit_echoes`` builds the Gram matrix from a table of the burst pair's partial products at
-each lag (the columns are shifted, possibly cut, copies of two fixed shapes), the right-hand
-side from the matched filter, the echoes by FFT convolution, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
+each lag (the columns are shifted, possibly cut, copies of two fixed shapes), gathers only
+each column's own samples for the right-hand side and the echoes, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
 a full-length vector and solves receiver by receiver: the test oracle.
 """
 from __future__ import annotations
@@ -18,10 +18,9 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from scipy import fft as sp_fft
 
 from imaging.measurement import Measurement
-from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths
+from imaging.paths import PathModel, scalar_paths, stacked_paths
 from imaging.timing import MM_PER_M
 
 FIT_RCOND = 1e-6  # relative cut-off on the Gram matrix's singular values (1e-3 on the design's)
@@ -63,10 +62,9 @@ def _arrival_samples(reference: Measurement, model: PathModel, positions: list[t
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - reference.rx_angles_deg[:, None]
     c_mm_s = reference.velocity_m_s * MM_PER_M
-    out = np.empty((reference.n_rx, len(positions), coherence_groups(model)), dtype=np.int64)
-    for index, (_group, length, _w) in enumerate(scatter_paths(model, z[None, :], rel)):
-        out[:, :, index] = np.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
-    return out
+    _groups, length, _w = stacked_paths(model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
+    samples = np.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5).astype(np.int64)
+    return np.ascontiguousarray(samples.transpose(1, 2, 0))
 
 
 def fit_echoes(
@@ -107,20 +105,18 @@ def fit_echoes(
     u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
     gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
                     table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
-    # Right-hand side: each column's correlation with the residual, i.e. the matched filter at its start.
-    n_fft = sp_fft.next_fast_len(n + size, real=True)
-    spectrum = sp_fft.rfft(residual, n_fft, axis=1)
-    correlation = sp_fft.irfft(spectrum[None, :, :] * np.conj(sp_fft.rfft(shapes, n_fft, axis=1))[:, None, :],
-                               n_fft, axis=2)  # [shape, m, lag mod n_fft]
-    rhs = np.where(valid, correlation[kind, np.arange(n_rx)[:, None], starts % n_fft], 0.0)
+    # Right-hand side: each column's samples times the residual's (zero outside the record).
+    padded = np.zeros((n_rx, n + 2 * size))
+    padded[:, size:size + n] = residual
+    window = (size + starts)[:, :, None] + np.arange(size)  # [m, column, u]: indices into ``padded``
+    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
+    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
     coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
-    # Each position's echoes: impulses of the coefficients at the column starts, convolved with the shapes.
-    impulses = np.zeros((n_pos, 2, n_rx, n_fft))
-    rows = np.broadcast_to(np.arange(n_rx)[:, None], starts.shape)
-    np.add.at(impulses, (owner, kind, rows, starts % n_fft), np.where(valid, coef, 0.0))
-    echoes = sp_fft.irfft(np.einsum("pxmf,xf->pmf", sp_fft.rfft(impulses, n_fft, axis=-1),
-                                    sp_fft.rfft(shapes, n_fft, axis=1)), n_fft, axis=-1)
-    return [np.ascontiguousarray(e[:, :n]) for e in echoes]
+    # Each position's echoes: every column's coefficient times its shape, added at its samples.
+    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * padded.shape[1] + window
+    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes[kind]
+    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * padded.size)
+    return [np.ascontiguousarray(e[:, size:size + n]) for e in total.reshape(n_pos, n_rx, -1)]
 
 
 def literal_fit_echoes(

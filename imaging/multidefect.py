@@ -34,6 +34,8 @@ FINE_STEP_DEG = 1.0
 FINE_HALF_WIDTH = 2  # a defect's local grid spans +- this many coarse steps round the coarse peak
 RUNNER_UP_HALF_WIDTH = 1  # ... a competing peak's (it only needs its height)
 CONFIDENCE_EXCLUSION_MM = 50.0  # the competing peak of a defect's confidence lies this far away at least
+COARSE_MARGIN = 0.5  # a later coarse peak below this fraction of the bar is not refined (lobes lose
+#                     far less than half their height within half a coarse step)
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
 
@@ -199,6 +201,8 @@ def find_defects(
         if not np.isfinite(candidates).any():
             break
         i, j = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
+        if found and candidates[i, j] < COARSE_MARGIN * max(threshold, MIN_RELATIVE_DI * found[0].estimate.di):
+            break  # far below what a further defect must reach: refining cannot lift it there
         estimate = fine_peak(local_image(values), di_map, int(i), int(j), allowed)
         first_peak = first_peak or estimate
         # What the echo fit leaves of a strong defect (the model is not the pipe) can cross an

@@ -54,11 +54,21 @@ def _safe_divide(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
-def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str) -> np.ndarray:
-    """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring)."""
+def _reciprocal(den: np.ndarray) -> np.ndarray:
+    """1 / den where den > 0, else 0."""
+    return np.where(den > 0, 1.0 / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
+             inverse_weight_sq: np.ndarray | None = None) -> np.ndarray:
+    """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring).
+
+    ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables)."""
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
-        power = _safe_divide(groups.real**2 + groups.imag**2, weight_sq)
+        if inverse_weight_sq is None:
+            inverse_weight_sq = _reciprocal(weight_sq)
+        power = (groups.real**2 + groups.imag**2) * inverse_weight_sq
         snr = np.sqrt(np.sum(power, axis=0) / groups.shape[0])
         return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
     weighted = np.sum(groups, axis=0)
@@ -133,15 +143,19 @@ def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, i
 
 @lru_cache(maxsize=32)
 def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
-                     t0_s: float, fs_hz: float, n_samples: int, power: int, mask: tuple[bool, ...]) -> np.ndarray:
-    """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle]."""
+                     t0_s: float, fs_hz: float, n_samples: int, power: int,
+                     mask: tuple[bool, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle],
+    and its ``_reciprocal``."""
     total = np.zeros((coherence_groups(model),) + grid.shape)
     for (angle, roll), healthy in zip(plan, mask):
         if healthy:
             table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power)
             total += np.roll(table.weight_sq.reshape(total.shape), roll, axis=2)
+    inverse = _reciprocal(total)
     total.setflags(write=False)
-    return total
+    inverse.setflags(write=False)
+    return total, inverse
 
 
 def _check_arguments(feature: np.ndarray, rx_angles_deg, rx_mask, normalise: str) -> tuple[np.ndarray, np.ndarray]:
@@ -190,7 +204,8 @@ def multipath_pixels(
         if mask[m]:
             table = _cached_table(grid, angle, *geometry)
             accumulate(total, padded[m], table.groups, table.idx, table.w, roll)
-    return _combine(total, _weight_sq_total(grid, plan, *geometry, tuple(bool(x) for x in mask)), normalise)
+    weight_sq, inverse = _weight_sq_total(grid, plan, *geometry, tuple(bool(x) for x in mask))
+    return _combine(total, weight_sq, normalise, inverse)
 
 
 def local_multipath_pixels(
