@@ -13,7 +13,8 @@ the two signatures used (complex64 and float32 features) when this module is imp
 ~1-2 s once per machine, then loaded from numba's on-disk cache (tens of ms).
 
 2. ``local_sums_compiled``: a small grid's group sums and squared weights computed path by
-path with scalar math, exactly as the literal oracle does (imaging/multipath.py
+path with the literal oracle's scalar math (hypot as the square root of a sum of squares,
+within an ulp) (imaging/multipath.py
 ``local_multipath_pixels`` falls back to its vectorised numpy form without numba).
 """
 from __future__ import annotations
@@ -125,7 +126,7 @@ def _local_loops(feature, rows, rx_angles_deg, axial_mm, angle_deg, offset, sign
                     dz = image[f] - z
                     for wrap in range(wraps):
                         leg = arc if wrap == 0 else other
-                        r_mm = math.hypot(dz, leg)
+                        r_mm = math.sqrt(dz * dz + leg * leg)  # libm hypot is ~5x slower; mm: no overflow
                         w = factor[f] * math.sqrt(wavelength_mm / max(r_mm, 0.5 * wavelength_mm))
                         if polarization and r_mm > 0:
                             w *= abs(dz) / r_mm
