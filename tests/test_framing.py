@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol.cobs import CobsError, cobs_decode, cobs_encode, cobs_max_encoded_len
-from protocol.crc import crc32c, crc32c_update
+from protocol.crc import crc32c, crc32c_update, reference_crc32c_update
 from protocol.framing import (
     MAX_ENCODED_BYTES,
     MAX_PAYLOAD_BYTES,
@@ -36,6 +36,13 @@ small_frames = st.builds(Frame, msg_type=st.integers(0, 255), request_id=st.inte
 
 def only_frames(items):
     return [item for item in items if isinstance(item, Frame)]
+
+
+@given(st.binary(max_size=3000), st.integers(0, 3000))
+def test_crc32c_equals_the_table_driven_reference_split_anywhere(data, cut):
+    cut = min(cut, len(data))
+    assert crc32c(data) == reference_crc32c_update(0, data)
+    assert crc32c_update(crc32c(data[:cut]), data[cut:]) == reference_crc32c_update(0, data)
 
 
 def test_crc32c_matches_the_catalogue_check_value():
