@@ -13,6 +13,10 @@ from db import migrate, sqlite_setup
 from db.errors import SchemaOutOfDate, translate_db_error
 
 
+SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
+SQLITE_POOL_OVERFLOW = 32
+
+
 class Database:
     """An engine plus the two kinds of unit of work the project uses.
 
@@ -77,7 +81,9 @@ def create_db_engine(url: str, *, busy_timeout_ms: int = sqlite_setup.DEFAULT_BU
             raise ValueError(
                 "SQLite needs a file URL (sqlite:///path/to/file.db); in-memory databases are not supported"
             )
-        engine = create_engine(parsed)
+        # Enough pooled connections for the API's worker threads: with SQLAlchemy's default (5 kept,
+        # overflow ones closed on return) a busy API reconnects and re-runs the PRAGMAs per request.
+        engine = create_engine(parsed, pool_size=SQLITE_POOL_SIZE, max_overflow=SQLITE_POOL_OVERFLOW)
         sqlite_setup.install(engine, busy_timeout_ms)
         return engine
     # pre_ping: the API and gateway outlive PostgreSQL restarts without a failed request.

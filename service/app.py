@@ -13,6 +13,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import problems
 from service.database import DatabaseGate
+from service.deps import VerifiedKeys
 from service.limits import BodySizeLimit
 from service.maps import HeatmapRenderer
 from service.metrics import metrics_registry
@@ -80,6 +81,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.database = gate
     app.state.heatmaps = HeatmapRenderer()
+    app.state.verified_keys = VerifiedKeys(settings.key_cache_ttl_s)
     app.state.metrics = metrics_registry(gate)
 
     problems.install_problem_handlers(app)

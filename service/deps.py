@@ -1,6 +1,8 @@
 """Injected dependencies of the routes: the database, sessions, and the caller's API key and role."""
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated
@@ -8,7 +10,7 @@ from typing import Annotated
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from db.api_keys import authenticate_api_key
+from db.api_keys import authenticate_api_key, hash_token
 from db.database import Database
 from db.models import Role
 from service.database import DatabaseGate
@@ -63,13 +65,59 @@ def presented_token(
     return token
 
 
-def current_caller(token: Annotated[str, Depends(presented_token)], database: DatabaseDep) -> Caller:
+class VerifiedKeys:
+    """Keys verified in the last ``ttl_s`` seconds, by token hash: most requests skip the key lookup.
+
+    A key revoked elsewhere (the CLI, another API process) stops working within ``ttl_s``; a key
+    revoked through this process stops at once (``forget``). Bounded: at most ``max_entries``.
+    """
+
+    def __init__(self, ttl_s: float, max_entries: int = 1024, clock: Callable[[], float] = time.monotonic) -> None:
+        self.ttl_s = ttl_s
+        self.max_entries = max_entries
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._entries: dict[str, tuple[float, Caller]] = {}
+
+    def get(self, token_hash: str) -> Caller | None:
+        with self._lock:
+            entry = self._entries.get(token_hash)
+            if entry is None or self._clock() - entry[0] > self.ttl_s:
+                self._entries.pop(token_hash, None)
+                return None
+            return entry[1]
+
+    def put(self, token_hash: str, caller: Caller) -> None:
+        with self._lock:
+            if len(self._entries) >= self.max_entries:
+                self._entries.clear()
+            self._entries[token_hash] = (self._clock(), caller)
+
+    def forget(self, key_id: int) -> None:
+        with self._lock:
+            for token_hash in [h for h, (_, c) in self._entries.items() if c.key_id == key_id]:
+                del self._entries[token_hash]
+
+
+def verified_keys(request: Request) -> VerifiedKeys:
+    return request.app.state.verified_keys
+
+
+def current_caller(
+    token: Annotated[str, Depends(presented_token)],
+    database: DatabaseDep,
+    cache: Annotated[VerifiedKeys, Depends(verified_keys)],
+) -> Caller:
     caller = None
     if len(token) <= MAX_TOKEN_CHARS:
-        with database.session() as session:
-            row = authenticate_api_key(session, token)
-            if row is not None:
-                caller = Caller(key_id=row.id, name=row.name, role=row.role)
+        token_hash = hash_token(token)
+        caller = cache.get(token_hash)
+        if caller is None:
+            with database.session() as session:
+                row = authenticate_api_key(session, token)
+                if row is not None:
+                    caller = Caller(key_id=row.id, name=row.name, role=row.role)
+                    cache.put(token_hash, caller)
     if caller is None:
         raise ApiProblem(UNAUTHORIZED, "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"})
     return caller

@@ -25,6 +25,10 @@ class ApiSettings(BaseSettings):
     )
     dashboard_refresh_s: float = Field(10.0, ge=1.0, le=3600.0, description="how often the dashboard reloads its data")
     busy_timeout_ms: int = Field(5000, ge=0, description="SQLite: how long a write waits for the gateway's lock")
+    key_cache_ttl_s: float = Field(
+        10.0, ge=0, le=300, description="a verified API key is trusted this long without a lookup; a key revoked "
+        "outside this process stops working within it (0: look up every request)"
+    )
 
     @field_validator("base_path")
     @classmethod

@@ -10,6 +10,8 @@ import uuid
 import pytest
 
 from api_fixtures import DAMAGED_NODE, Api, api, assert_problem  # noqa: F401 (fixture)
+from db.models import Role
+from service.deps import Caller, VerifiedKeys
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -122,3 +124,17 @@ def test_dashboard_shell_needs_no_key_but_holds_no_data(api: Api):
         assert DAMAGED_NODE not in page.text
         assert "default-src 'self'" in page.headers["content-security-policy"]
         assert anonymous.get("/static/dashboard.js").status_code == 200
+
+
+def test_verified_keys_expire_after_their_ttl_and_can_be_forgotten():
+    clock = [100.0]
+    keys = VerifiedKeys(ttl_s=10.0, clock=lambda: clock[0])
+    alice = Caller(key_id=1, name="alice", role=Role.OPERATOR)
+    keys.put("h1", alice)
+    clock[0] += 9.0
+    assert keys.get("h1") == alice
+    clock[0] += 2.0
+    assert keys.get("h1") is None  # past the TTL: looked up again
+    keys.put("h1", alice)
+    keys.forget(1)
+    assert keys.get("h1") is None  # revoked through this process: at once

@@ -14,6 +14,7 @@ from api_fixtures import DAMAGED_NODE, copy_database, fleet_database, free_port
 from pipesentry.commands.api import api
 from pipesentry.commands.apikey import apikey_app
 from process_harness import Proc, wait_until
+from service.settings import ApiSettings
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -54,7 +55,9 @@ def test_created_key_is_printed_once_and_works_until_revoked(db_url, tmp_path):
         assert node.status_code == 200 and node.json()["state"] == "damage"
         revoked = apikey("revoke", key_id, "--database-url", db_url)
         assert revoked.exit_code == 0 and "revoked" in revoked.stdout
-        assert httpx.get(f"{base}/api/v1/nodes", headers=headers, timeout=10).status_code == 401
+        # Revoked from outside the API process: refused within the key cache's TTL (10 s by default).
+        wait_until(lambda: httpx.get(f"{base}/api/v1/nodes", headers=headers, timeout=10).status_code == 401,
+                   ApiSettings().key_cache_ttl_s + 5, 0.5, what="the revoked key to be refused")
         # uvicorn shuts down gracefully, then re-raises SIGTERM so the exit status tells why.
         assert server.terminate() in (0, -signal.SIGTERM), server.stderr[-2000:]
     finally:

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, Path, status
 
 from db.api_keys import create_api_key, list_api_keys, revoke_api_key
 from service import schemas
-from service.deps import Admin, DatabaseDep, require_admin
+from service.deps import Admin, DatabaseDep, VerifiedKeys, require_admin, verified_keys
 from service.problems import problem_responses
 
 router = APIRouter(prefix="/keys", tags=["keys"], dependencies=[Depends(require_admin)],
@@ -30,6 +30,10 @@ def create_key(body: schemas.ApiKeyCreate, _: Admin, database: DatabaseDep) -> s
 
 
 @router.delete("/{key_id}", responses=problem_responses(404), summary="Revoke a key (idempotent; kept for audit)")
-def revoke_key(key_id: KeyId, _: Admin, database: DatabaseDep) -> schemas.ApiKey:
+def revoke_key(
+    key_id: KeyId, _: Admin, database: DatabaseDep, cache: Annotated[VerifiedKeys, Depends(verified_keys)]
+) -> schemas.ApiKey:
     with database.write() as session:
-        return schemas.ApiKey.model_validate(revoke_api_key(session, key_id))
+        revoked = schemas.ApiKey.model_validate(revoke_api_key(session, key_id))
+    cache.forget(key_id)  # effective at once in this process
+    return revoked
