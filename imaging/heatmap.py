@@ -19,9 +19,10 @@ def heatmap_png(
     *,
     truth: Sequence[tuple[float, float]] = (),
     title: str | None = None,
+    label: str = "estimate",
     dpi: int = 100,
 ) -> bytes:
-    """Render the map to PNG bytes; estimates as white crosses, known true positions as open circles."""
+    """Render the map to PNG bytes; estimates as white crosses named ``label``, true positions as open circles."""
     grid = di_map.grid
     fig, ax = plt.subplots(figsize=(7.0, 4.6), dpi=dpi)
     try:
@@ -41,7 +42,7 @@ def heatmap_png(
             ax.plot(est.axial_mm, est.angle_deg, "x", color="black", markersize=10, markeredgewidth=1.2)
             right_half = est.axial_mm > extent[0] + 0.55 * (extent[1] - extent[0])
             ax.annotate(
-                f"estimate {k + 1}: {est.axial_mm:.0f} mm, {est.angle_deg:.0f}\u00b0",
+                f"{label} {k + 1}: {est.axial_mm:.0f} mm, {est.angle_deg:.0f}\u00b0",
                 (est.axial_mm, est.angle_deg),
                 textcoords="offset points",
                 xytext=(-10, 8) if right_half else (8, 8),

@@ -55,6 +55,14 @@ def _estimate(session: Session, row: DiMapRow, di_map: DIMap) -> Estimate | None
     return locate_peak(DIMap(filled, di_map.grid, di_map.method, di_map.window_samples))
 
 
+def _marker_label(session: Session, row: DiMapRow) -> str:
+    """What the cross on a map means: a defect estimate only when the verdict found one."""
+    if row.source != MapSource.GATEWAY:
+        return "node's peak"
+    detection = detection_for(session, row.measurement_id)
+    return "estimate" if detection is not None and detection.defects else "map peak (below threshold)"
+
+
 def map_json(session: Session, measurement_id: int, source: MapSource) -> schemas.DiMap:
     row = map_row(session, measurement_id, source)
     di_map = _di_map(row)
@@ -83,14 +91,15 @@ class HeatmapRenderer:
         row = map_row(session, measurement_id, source)
         di_map = _di_map(row)
         estimate = _estimate(session, row, di_map)
-        key = (row.id, row.pixels_sha256, None if estimate is None else (estimate.axial_mm, estimate.angle_deg))
+        label = _marker_label(session, row)
+        key = (row.id, row.pixels_sha256, label, None if estimate is None else (estimate.axial_mm, estimate.angle_deg))
         with self._lock:
             cached = self._cache.get(key)
             if cached is not None:
                 self._cache.move_to_end(key)
                 return cached
             title = f"{row.measurement.node_id} measurement {measurement_id}: {source.value} DI map ({row.method})"
-            png = heatmap_png(di_map, [] if estimate is None else [estimate], title=title)
+            png = heatmap_png(di_map, [] if estimate is None else [estimate], title=title, label=label)
             self._cache[key] = png
             while len(self._cache) > self._entries:
                 self._cache.popitem(last=False)

@@ -23,7 +23,16 @@ import uvicorn
 from db.api_keys import create_api_key
 from db.database import open_database
 from db.models import NodeRow, NodeState, Role
-from process_harness import Proc, gateway_config, start_gateway, start_mock_nodes, wait_for_links, wait_until
+from process_harness import (
+    Proc,
+    gateway_config,
+    gateway_node,
+    scenario_node,
+    start_gateway,
+    start_mock_nodes,
+    wait_for_links,
+    wait_until,
+)
 from service.app import create_app
 from service.settings import ApiSettings
 
@@ -36,38 +45,13 @@ DEFECT_APPEARS_AT_S = 15.0
 FLEET_TIMEOUT_S = 60.0
 MIN_MONITORS_PER_NODE = 6
 
-_SCENARIO_NODE = """
-[[nodes]]
-node_id = "{id}"
-seed = {seed}
-[nodes.temperature]
-mean_c = 21.0
-jitter_c = 0.02
-"""
-_SCENARIO_DEFECT = """
-[[nodes.defects]]
-kind = "notch"
-axial_mm = {axial}
-angle_deg = {angle}
-appears_at_s = {at}
-"""
-
-
 def fleet_scenario() -> str:
-    text = "".join(_SCENARIO_NODE.format(id=n, seed=300 + i) for i, n in enumerate(QUIET_NODES))
-    text += _SCENARIO_NODE.format(id=DAMAGED_NODE, seed=399)
-    text += _SCENARIO_DEFECT.format(axial=DEFECT_AXIAL_MM, angle=DEFECT_ANGLE_DEG, at=DEFECT_APPEARS_AT_S)
-    return text
+    text = "".join(scenario_node(n, 300 + i) for i, n in enumerate(QUIET_NODES))
+    return text + scenario_node(DAMAGED_NODE, 399, defect=(DEFECT_AXIAL_MM, DEFECT_ANGLE_DEG, DEFECT_APPEARS_AT_S))
 
 
 def node_settings(node_id: str, link_dir: Path, interval_s: float = 0.3) -> dict:
-    return {
-        "id": node_id,
-        "url": str(link_dir / node_id),
-        "interval_s": interval_s,
-        "timeout_s": 1.0,
-        "threshold": {"calibration_count": 8, "hysteresis_count": 2, "false_alarm_rate": 1e-3},
-    }
+    return gateway_node(node_id, link_dir, interval_s=interval_s)
 
 
 @dataclass

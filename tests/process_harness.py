@@ -124,3 +124,37 @@ def _toml(value) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml(v) for v in value) + "]"
     return repr(value)
+
+
+def scenario_node(
+    node_id: str,
+    seed: int,
+    *,
+    defect: tuple[float, float, float] | None = None,
+    temperature: dict | None = None,
+) -> str:
+    """One node of a mock-node scenario TOML on the paper's default pipe: ``defect`` is a notch
+    (axial_mm, angle_deg, appears_at_s); ``temperature`` the node's TemperatureSpec fields."""
+    temperature = temperature or {"mean_c": 21.0, "jitter_c": 0.02}
+    text = f'\n[[nodes]]\nnode_id = "{node_id}"\nseed = {seed}\n[nodes.temperature]\n'
+    text += "".join(f"{k} = {_toml(v)}\n" for k, v in temperature.items())
+    if defect is not None:
+        axial_mm, angle_deg, appears_at_s = defect
+        text += (f'[[nodes.defects]]\nkind = "notch"\naxial_mm = {axial_mm!r}\nangle_deg = {angle_deg!r}\n'
+                 f"appears_at_s = {appears_at_s!r}\n")
+    return text
+
+
+def gateway_node(node_id: str, link_dir: Path, **overrides) -> dict:
+    """Gateway settings of one mock node, as an installer would write them for the default pipe."""
+    cfg = {
+        "id": node_id,
+        "url": str(link_dir / node_id),
+        "interval_s": 0.3,
+        "timeout_s": 1.0,
+        # what the node does not report: the scenario's default pipe length, Tx ring position and wall
+        "geometry": {"pipe_length_mm": 1000.0, "tx_axial_mm": 300.0, "wall_mm": 4.0},
+        "threshold": {"calibration_count": 8, "hysteresis_count": 2, "false_alarm_rate": 1e-3},
+    }
+    cfg.update(overrides)
+    return cfg

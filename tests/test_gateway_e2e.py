@@ -15,49 +15,24 @@ from db.measurements import load_traces
 from db.models import BaselineRow, DetectionRow, DiMapRow, MeasurementKind, MeasurementRow, NodeRow, StateChangeRow
 from imaging.detection import default_threshold
 
-from process_harness import gateway_config, start_gateway, start_mock_nodes, wait_for_links, wait_until
+from process_harness import (
+    gateway_config,
+    gateway_node,
+    scenario_node,
+    start_gateway,
+    start_mock_nodes,
+    wait_for_links,
+    wait_until,
+)
 
 pytestmark = pytest.mark.timeout(240)
 
-QUIET_NODE = """
-[[nodes]]
-node_id = "{id}"
-seed = {seed}
-[nodes.temperature]
-mean_c = 21.0
-jitter_c = 0.02
-"""
-
-DEFECT_NODE = """
-[[nodes]]
-node_id = "{id}"
-seed = {seed}
-[nodes.temperature]
-mean_c = 21.0
-jitter_c = 0.02
-[[nodes.defects]]
-kind = "notch"
-axial_mm = 200.0
-angle_deg = 90.0
-appears_at_s = {appears_at_s}
-"""
-
-
-def write_scenario(path: Path, quiet: list[str], damaged: dict[str, float] | None = None, faults: str = "") -> Path:
-    text = "".join(QUIET_NODE.format(id=n, seed=100 + i) + faults for i, n in enumerate(quiet))
-    for i, (n, t) in enumerate((damaged or {}).items()):
-        text += DEFECT_NODE.format(id=n, seed=200 + i, appears_at_s=t) + faults
+def write_scenario(path: Path, quiet: list[str], damaged: dict[str, float] | None = None) -> Path:
+    """Quiet nodes, and nodes whose paper notch (200 mm, 90 deg) appears at the given scenario time."""
+    text = "".join(scenario_node(n, 100 + i) for i, n in enumerate(quiet))
+    text += "".join(scenario_node(n, 200 + i, defect=(200.0, 90.0, t)) for i, (n, t) in enumerate((damaged or {}).items()))
     path.write_text(text)
     return path
-
-
-def node_cfg(node_id: str, link_dir: Path, **kw) -> dict:
-    cfg = {"id": node_id, "url": str(link_dir / node_id), "interval_s": 0.3, "timeout_s": 1.0,
-           # what an installer writes down: the scenario's default pipe (the node does not report it)
-           "geometry": {"pipe_length_mm": 1000.0, "tx_axial_mm": 300.0, "wall_mm": 4.0},
-           "threshold": {"calibration_count": 8, "hysteresis_count": 2, "false_alarm_rate": 1e-3}}
-    cfg.update(kw)
-    return cfg
 
 
 @pytest.fixture
@@ -81,7 +56,7 @@ def start_fleet(run_dir: Path, scenario: Path, node_ids: list[str], *mock_args: 
     wait_for_links(links, node_ids, mock)
     db_path = run_dir / "gateway.db"
     config = run_dir / "gateway.toml"
-    config.write_text(gateway_config(db_path, [node_cfg(n, links, **node_kw) for n in node_ids]))
+    config.write_text(gateway_config(db_path, [gateway_node(n, links, **node_kw) for n in node_ids]))
     return mock, config, f"sqlite:///{db_path}"
 
 
@@ -234,18 +209,6 @@ def test_systemd_gets_ready_and_watchdog_pings(run_dir):
         mock.close()
 
 
-DRIFTING_NODE = """
-[[nodes]]
-node_id = "{id}"
-seed = {seed}
-[nodes.temperature]
-mean_c = 20.0
-daily_amplitude_c = 2.0
-period_s = 40.0
-jitter_c = 0.05
-"""
-
-
 def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
     """+-2 degC over a 40 s 'day': compensation keeps sound pipes below the documented default threshold.
 
@@ -254,13 +217,22 @@ def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
     """
     ids = ["drift-a", "drift-b"]
     scenario = run_dir / "s.toml"
-    scenario.write_text("".join(DRIFTING_NODE.format(id=n, seed=300 + i) for i, n in enumerate(ids)))
+    drift = {"mean_c": 20.0, "daily_amplitude_c": 2.0, "period_s": 40.0, "jitter_c": 0.05}
+    scenario.write_text("".join(scenario_node(n, 300 + i, temperature=drift) for i, n in enumerate(ids)))
     fixed = {"mode": "absolute", "absolute": default_threshold("multipath", "analytic"), "hysteresis_count": 2}
     mock, config, url = start_fleet(run_dir, scenario, ids, threshold=fixed)
     gw = start_gateway(config, run_dir)
+    def temperature_spread_c() -> float:
+        d = open_database(url, upgrade=False)
+        try:
+            with d.session() as s:
+                return s.scalar(select(func.max(MeasurementRow.temperature_c) - func.min(MeasurementRow.temperature_c)))
+        finally:
+            d.dispose()
+
     try:
-        wait_until(lambda: all(counts(url).get(n, 0) >= 45 for n in ids), 200, 1.0,
-                   what="45 measurements per node (over a full temperature cycle)")
+        wait_until(lambda: all(counts(url).get(n, 0) >= 20 for n in ids) and temperature_spread_c() >= 3.0,
+                   200, 1.0, what="a 3 degC swing of the pipe temperature, with 20 measurements per node")
     finally:
         gw.close()
         mock.close()
@@ -268,8 +240,6 @@ def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
     with db.session() as s:
         flagged = s.scalars(select(StateChangeRow).where(StateChangeRow.to_state.in_(["suspected", "damage"]))).all()
         assert flagged == [], [(c.node_id, c.to_state.value) for c in flagged]
-        temps = s.scalars(select(MeasurementRow.temperature_c)).all()
-        assert max(temps) - min(temps) > 2.0  # the drift really happened
         states = {n: s.get(NodeRow, n).state.value for n in ids}
         assert set(states.values()) <= {"ok"}, states
         peaks = s.scalars(select(DetectionRow.peak_di)).all()
