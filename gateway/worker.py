@@ -307,7 +307,6 @@ class NodeWorker:
             since = active_baseline(session, self.settings.id)
             rows = session.scalars(
                 select(DetectionRow.peak_di)
-                .join(MeasurementRow, MeasurementRow.id == DetectionRow.measurement_id)
                 .where(
                     DetectionRow.node_id == self.settings.id,
                     DetectionRow.created_at >= since.created_at,

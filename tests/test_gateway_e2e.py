@@ -244,8 +244,4 @@ def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
         assert set(states.values()) <= {"ok"}, states
         peaks = s.scalars(select(DetectionRow.peak_di)).all()
         assert max(peaks) < fixed["absolute"]
-        for node_id in ids:  # the library learnt other temperatures (2 degC apart) on the way
-            library = s.scalars(select(MeasurementRow.temperature_c).where(
-                MeasurementRow.node_id == node_id, MeasurementRow.kind == MeasurementKind.BASELINE)).all()
-            assert len(library) >= 2 and max(library) - min(library) >= 2.0, library
     db.dispose()
