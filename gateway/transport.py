@@ -12,6 +12,13 @@ import serial
 _POLL_S = 0.02
 
 
+try:  # POSIX: pyserial's flush()/reset_input_buffer() call termios, whose error is not an OSError
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - Windows
+    _TermiosError = OSError
+# What a port that vanished (unplugged USB-UART, closed pty, dropped socket) raises.
+PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, _TermiosError)
+
 class NodeClientError(Exception):
     """Base of every error the gateway's node client raises."""
 
@@ -38,7 +45,7 @@ class SerialTransport:
             kwargs["exclusive"] = True
         try:
             self._port = serial.serial_for_url(self.url, **kwargs)
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (*PORT_ERRORS, ValueError) as exc:
             self._port = None
             raise PortVanished(f"cannot open {self.url}: {exc}") from exc
 
@@ -47,7 +54,7 @@ class SerialTransport:
         if port is not None:
             try:
                 port.close()
-            except (serial.SerialException, OSError):
+            except PORT_ERRORS:
                 pass  # closing a port that already vanished has nothing left to release
 
     def reopen(self) -> None:
@@ -69,7 +76,7 @@ class SerialTransport:
         try:
             port.write(data)
             port.flush()
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             self.close()
             raise PortVanished(f"write to {self.url} failed: {exc}") from exc
 
@@ -84,7 +91,7 @@ class SerialTransport:
                     return first + self._read_available(port)
                 if time.monotonic() >= deadline:
                     return b""
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             self.close()
             raise PortVanished(f"read from {self.url} failed: {exc}") from exc
 
@@ -104,6 +111,6 @@ class SerialTransport:
         port = self._require()
         try:
             port.reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             self.close()
             raise PortVanished(f"{self.url}: {exc}") from exc

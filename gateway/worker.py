@@ -14,7 +14,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import serial
 
 from db.baselines import active_baseline, set_active_baseline
 from db.clock import utc_now
@@ -37,6 +36,7 @@ from gateway.node_client import (
     PortVanished,
     ProtocolMismatch,
 )
+from gateway.transport import PORT_ERRORS
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
 from protocol.messages import ConfigureReply, InfoReply
@@ -131,7 +131,7 @@ class NodeWorker:
                 except PortVanished as exc:
                     failures += 1
                     self._drop_connection(f"port vanished: {exc}")
-                except (serial.SerialException, OSError) as exc:
+                except PORT_ERRORS as exc:
                     failures += 1
                     self._drop_connection(f"cannot open {self.settings.url}: {exc}")
                 except ProtocolMismatch as exc:

@@ -170,6 +170,28 @@ def test_opening_a_missing_device_is_port_vanished(tmp_path):
         NodeClient(str(tmp_path / "ttyUSB9"))
 
 
+def _hung_up_pty_transport() -> SerialTransport:
+    master, slave = os.openpty()
+    transport = SerialTransport(os.ttyname(slave))
+    os.close(slave)
+    os.close(master)
+    return transport
+
+
+def test_a_pty_whose_other_end_closed_is_port_vanished_on_write_and_on_flush():
+    """An unplugged USB-UART: write() fails with EIO, and termios calls (the flush after a write,
+    discarding input) fail with termios.error, which is not an OSError: both are PortVanished."""
+    transport = _hung_up_pty_transport()
+    with pytest.raises(PortVanished):
+        transport.discard_input()  # tcflush on the hung-up pty: termios.error
+    assert not transport.is_open
+    transport = _hung_up_pty_transport()
+    with pytest.raises(PortVanished):
+        for _ in range(50):  # the kernel may accept the first writes; bounded
+            transport.write(b"\x00hello\x00" * 100)
+    assert not transport.is_open
+
+
 def test_a_pty_is_opened_exclusively():
     with MockNodeServer([make_scenario()], kind="pty") as server:
         url = server.urls["node-01"]
