@@ -19,6 +19,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import subprocess
+import shutil
+import re
 import statistics
 import sys
 import tempfile
@@ -90,6 +93,41 @@ async def load(base: str, token: str, clients: int, duration_s: float, pace_s: f
     }
 
 
+WRK_SCRIPT = """
+local paths = {%s}
+local i = 0
+request = function()
+  i = i + 1
+  return wrk.format("GET", paths[(i %% #paths) + 1], {["Authorization"] = "Bearer %s"})
+end
+"""
+
+
+def wrk_load(base: str, token: str, clients: int, duration_s: float, run_dir: Path) -> dict | None:
+    """The closed loop again with wrk (C, one thread): the Python load generator above saturates a core
+    before the API does on a 2-core machine. None when wrk is not installed."""
+    exe = shutil.which("wrk")
+    if exe is None:
+        return None
+    paths = [f"/api/v1/nodes/{n}/detections/latest" for n in NODES] + ["/api/v1/nodes"]
+    script = run_dir / "mix.lua"
+    script.write_text(WRK_SCRIPT % (", ".join(f'"{p}"' for p in paths), token))
+    out = subprocess.run([exe, "-t1", f"-c{clients}", f"-d{duration_s:.0f}s", "--latency", "-s", str(script), base],
+                         capture_output=True, text=True, timeout=duration_s + 60).stdout
+
+    def ms(label: str) -> float:
+        match = re.search(rf"^\s*{label}\s+([\d.]+)(us|ms|s)\s*$", out, re.M)
+        value, unit = float(match.group(1)), match.group(2)
+        return value * {"us": 1e-3, "ms": 1.0, "s": 1e3}[unit]
+
+    total = int(re.search(r"(\d+) requests in", out).group(1))
+    bad = re.search(r"Non-2xx or 3xx responses: (\d+)", out)
+    errors = int(bad.group(1)) if bad else 0
+    errors += sum(int(n) for n in re.findall(r"(?:connect|read|write|timeout) (\d+)", out))
+    return {"requests": total, "errors": errors, "throughput": float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1)),
+            "p50": ms("50%"), "p90": ms("90%"), "p99": ms("99%"), "max": float("nan")}
+
+
 def measurement_count(url: str) -> int:
     from sqlalchemy import func, select
 
@@ -139,6 +177,12 @@ def main() -> int:
                 before = measurement_count(fleet.url)
                 results[name] = asyncio.run(load(base, token, args.clients, args.duration_s, pace))
                 report(name, results[name], measurement_count(fleet.url) - before)
+            before = measurement_count(fleet.url)
+            by_wrk = wrk_load(base, token, args.clients, args.duration_s, run_dir)
+            if by_wrk is None:
+                print("closed loop with wrk: skipped (wrk not installed; Debian package 'wrk')")
+            else:
+                report("closed loop with wrk", by_wrk, measurement_count(fleet.url) - before)
         finally:
             if api is not None:
                 api.terminate()
