@@ -10,7 +10,7 @@ from db.models import Severity
 from service import alerts, schemas
 from service.deps import DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
-from service.routes.common import DEFAULT_LIMIT, Cursor, Limit
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, Limit
 
 router = APIRouter(prefix="/alerts", tags=["alerts"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))

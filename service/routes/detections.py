@@ -9,7 +9,7 @@ from db.models import NodeState
 from service import history, schemas
 from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
-from service.routes.common import DEFAULT_LIMIT, Cursor, End, Limit, Start
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, End, Limit, Start
 
 router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))

@@ -9,7 +9,7 @@ from db.models import MapSource
 from service import history, maps, schemas, traces
 from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
-from service.routes.common import MeasurementId
+from service.routes.parameters import MeasurementId
 
 router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 404, 503))

@@ -7,7 +7,7 @@ from db.models import MeasurementKind, NodeState
 from service import baselines, fleet, history, schemas
 from service.deps import DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
-from service.routes.common import DEFAULT_LIMIT, BaselineId, Cursor, End, Limit, NodeId, Start
+from service.routes.parameters import DEFAULT_LIMIT, BaselineId, Cursor, End, Limit, NodeId, Start
 
 router = APIRouter(prefix="/nodes", tags=["nodes"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))

@@ -1,4 +1,4 @@
-"""Parameters shared by the routes."""
+"""Path and query parameters shared by the routes: paging, time ranges, ids."""
 from __future__ import annotations
 
 from typing import Annotated
