@@ -261,7 +261,8 @@ class NodeClient:
         self._transport.write(encode_frame(Frame(message.TYPE, request_id, message.encode(), seq=self._seq)))
 
     def _backoff(self, attempt: int) -> None:
-        # Exponential with full jitter (urllib3 Retry style), capped.
+        # Exponential with equal jitter: between half and all of the capped delay, never near zero,
+        # so a retried command always leaves the node time to finish what it is doing.
         cap = min(self.backoff_max_s, self.backoff_s * 2 ** (attempt - 1))
         time.sleep(self._rng.uniform(0.5 * cap, cap))
 
