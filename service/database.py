@@ -40,6 +40,10 @@ class DatabaseGate:
                 self._database = open_database(self.url, upgrade=False, busy_timeout_ms=self.busy_timeout_ms)
             return self._database
 
+    def opened(self) -> Database | None:
+        """The database if it is open already (never blocks), else None."""
+        return self._database
+
     def check_ready(self) -> str:
         """The schema revision if the database answers and is at this release's head; raises otherwise."""
         revision = self.get().schema_revision()

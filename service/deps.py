@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, Request, Security
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from db.api_keys import authenticate_api_key, hash_token
@@ -40,9 +41,9 @@ def get_settings(request: Request) -> ApiSettings:
     return request.app.state.settings
 
 
-def get_database(request: Request) -> Database:
+async def get_database(request: Request) -> Database:
     gate: DatabaseGate = request.app.state.database
-    return gate.get()
+    return gate.opened() or await run_in_threadpool(gate.get)
 
 
 DatabaseDep = Annotated[Database, Depends(get_database)]
@@ -52,9 +53,14 @@ DatabaseDep = Annotated[Database, Depends(get_database)]
 # instead of through a yield-dependency: a dependency's session would hold a pooled
 # connection across thread hops, and under load the threads waiting for a connection can
 # starve the ones holding one (a deadlock until the pool times out).
+#
+# The dependencies below are ``async def`` and never block: FastAPI runs a plain ``def``
+# dependency in the thread pool, and on a loaded 2-core edge computer every such hop is a
+# wait for the scheduler. Only what does I/O (the first open, a key not in the cache) goes
+# to a worker thread; a request then costs one hop, its route's.
 
 
-def presented_token(
+async def presented_token(
     bearer: Annotated[HTTPAuthorizationCredentials | None, Security(bearer_scheme)],
     header_key: Annotated[str | None, Security(header_scheme)],
 ) -> str:
@@ -99,11 +105,17 @@ class VerifiedKeys:
                 del self._entries[token_hash]
 
 
-def verified_keys(request: Request) -> VerifiedKeys:
+async def verified_keys(request: Request) -> VerifiedKeys:
     return request.app.state.verified_keys
 
 
-def current_caller(
+def _look_up_key(database: Database, token: str) -> Caller | None:
+    with database.session() as session:
+        row = authenticate_api_key(session, token)
+        return None if row is None else Caller(key_id=row.id, name=row.name, role=row.role)
+
+
+async def current_caller(
     token: Annotated[str, Depends(presented_token)],
     database: DatabaseDep,
     cache: Annotated[VerifiedKeys, Depends(verified_keys)],
@@ -113,11 +125,9 @@ def current_caller(
         token_hash = hash_token(token)
         caller = cache.get(token_hash)
         if caller is None:
-            with database.session() as session:
-                row = authenticate_api_key(session, token)
-                if row is not None:
-                    caller = Caller(key_id=row.id, name=row.name, role=row.role)
-                    cache.put(token_hash, caller)
+            caller = await run_in_threadpool(_look_up_key, database, token)
+            if caller is not None:
+                cache.put(token_hash, caller)
     if caller is None:
         raise ApiProblem(UNAUTHORIZED, "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"})
     return caller
@@ -126,7 +136,7 @@ def current_caller(
 def require(role: Role) -> Callable[[Caller], Caller]:
     """A dependency that admits callers whose role is at least ``role``."""
 
-    def check(caller: Annotated[Caller, Depends(current_caller)]) -> Caller:
+    async def check(caller: Annotated[Caller, Depends(current_caller)]) -> Caller:
         if not caller.allows(role):
             raise ApiProblem(FORBIDDEN, f"needs the {role.value} role; this key is {caller.role.value}")
         return caller
