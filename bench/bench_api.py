@@ -10,7 +10,13 @@ alternating the two requests. Two runs:
 * closed loop: every client sends its next request as soon as the previous answer arrives
   (saturation: the throughput ceiling; latency then is queueing, roughly N / throughput);
 * paced: every client sends one request per ``--pace-s`` (a dashboard or poller each),
-  the load an operator deployment sees; the p99 target (< 50 ms) applies here.
+  the load an operator deployment sees; the p99 target (< 50 ms) applies here. Repeated
+  ``--paced-runs`` times: the verdict is on the worst run, not the best.
+
+Priorities as deployed: the gateway runs at the ``Nice=`` of deploy/systemd/pipesentry-gateway.service
+(the API at 0, as its unit does); the simulated nodes run at nice 19, because a real node's
+physics happens on its own hardware, not on the edge computer. ``--equal-priority`` runs
+everything at nice 0 instead.
 
 Prints throughput and p50/p90/p99/max latency for each, and the gateway's measurements
 stored meanwhile (to show it kept writing).
@@ -39,6 +45,13 @@ from process_harness import PYTHON, Proc, wait_until  # noqa: E402
 
 NODES = [*QUIET_NODES, DAMAGED_NODE]
 TARGET_P99_MS = 50.0
+GATEWAY_UNIT = ROOT / "deploy" / "systemd" / "pipesentry-gateway.service"
+SIMULATED_NODES_NICE = 19
+
+
+def deployed_gateway_nice() -> int:
+    match = re.search(r"^Nice=(-?\d+)\s*$", GATEWAY_UNIT.read_text(), re.M)
+    return int(match.group(1)) if match else 0
 
 
 def percentile(sorted_values: list[float], q: float) -> float:
@@ -153,12 +166,17 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=64)
     parser.add_argument("--duration-s", type=float, default=30.0)
     parser.add_argument("--pace-s", type=float, default=1.0, help="per-client request interval of the paced run")
+    parser.add_argument("--paced-runs", type=int, default=3, help="paced runs; the verdict is on the worst p99")
     parser.add_argument("--gateway-interval-s", type=float, default=1.0)
+    parser.add_argument("--equal-priority", action="store_true",
+                        help="gateway and simulated nodes at nice 0 (default: as deployed, see the docstring)")
     args = parser.parse_args()
+    gateway_nice, nodes_nice = (0, 0) if args.equal_priority else (deployed_gateway_nice(), SIMULATED_NODES_NICE)
 
     with tempfile.TemporaryDirectory(prefix="bench-api-") as tmp:
         run_dir = Path(tmp)
-        fleet = start_fleet(run_dir / "fleet", interval_s=args.gateway_interval_s)
+        fleet = start_fleet(run_dir / "fleet", interval_s=args.gateway_interval_s, gateway_nice=gateway_nice,
+                            nodes_nice=nodes_nice)
         api = None
         try:
             wait_until(lambda: measurement_count(fleet.url) >= 3 * len(NODES), 120, 0.5,
@@ -171,9 +189,12 @@ def main() -> int:
             wait_until(lambda: httpx.get(f"{base}/readyz", timeout=2).status_code == 200, 30, 0.1, what="API ready")
             print(f"{args.clients} clients x {args.duration_s:.0f} s per run; requests alternate GET "
                   f"/nodes/{{id}}/detections/latest (3 nodes) and GET /nodes; gateway polling 3 nodes "
-                  f"every {args.gateway_interval_s:g} s")
+                  f"every {args.gateway_interval_s:g} s; nice: API 0, gateway {gateway_nice}, "
+                  f"simulated nodes {nodes_nice}")
+            runs = [("closed loop", None)]
+            runs += [(f"paced run {k + 1} ({args.pace_s:g} s per client)", args.pace_s) for k in range(args.paced_runs)]
             results = {}
-            for name, pace in (("closed loop", None), (f"paced ({args.pace_s:g} s per client)", args.pace_s)):
+            for name, pace in runs:
                 before = measurement_count(fleet.url)
                 results[name] = asyncio.run(load(base, token, args.clients, args.duration_s, pace))
                 report(name, results[name], measurement_count(fleet.url) - before)
@@ -188,9 +209,12 @@ def main() -> int:
                 api.terminate()
                 api.close()
             fleet.stop()
-    paced = results[f"paced ({args.pace_s:g} s per client)"]
-    verdict = "meets" if paced["p99"] < TARGET_P99_MS else "MISSES"
-    print(f"paced p99 {paced['p99']:.1f} ms {verdict} the {TARGET_P99_MS:.0f} ms target")
+    paced_p99 = [r["p99"] for name, r in results.items() if name.startswith("paced")]
+    if paced_p99:
+        worst = max(paced_p99)
+        verdict = "meets" if worst < TARGET_P99_MS else "MISSES"
+        print(f"paced p99 over {len(paced_p99)} runs: {', '.join(f'{p:.1f}' for p in paced_p99)} ms; "
+              f"the worst {verdict} the {TARGET_P99_MS:.0f} ms target")
     return 0
 
 

@@ -76,19 +76,23 @@ class RunningFleet:
             self.mock.close()
 
 
-def start_fleet(run_dir: Path, interval_s: float = 0.3) -> RunningFleet:
-    """Start the mock nodes (on pseudo-terminals) and the gateway; returns once ports exist."""
+def start_fleet(run_dir: Path, interval_s: float = 0.3, *, gateway_nice: int = 0, nodes_nice: int = 0) -> RunningFleet:
+    """Start the mock nodes (on pseudo-terminals) and the gateway; returns once ports exist.
+
+    ``gateway_nice`` / ``nodes_nice``: CPU niceness of the two processes (the benchmark runs the
+    gateway as its systemd unit does, and the simulated nodes, whose work real nodes do on their
+    own hardware, behind everything)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     scenario = run_dir / "scenario.toml"
     scenario.write_text(fleet_scenario())
     links = run_dir / "links"
     ids = [*QUIET_NODES, DAMAGED_NODE]
-    mock = start_mock_nodes(scenario, links, run_dir)
+    mock = start_mock_nodes(scenario, links, run_dir, nice=nodes_nice)
     wait_for_links(links, ids, mock)
     db_path = run_dir / "gateway.db"
     config = run_dir / "gateway.toml"
     config.write_text(gateway_config(db_path, [node_settings(n, links, interval_s) for n in ids]))
-    return RunningFleet(run_dir, db_path, mock, start_gateway(config, run_dir))
+    return RunningFleet(run_dir, db_path, mock, start_gateway(config, run_dir, nice=gateway_nice))
 
 
 def _fleet_is_realistic(url: str) -> bool:

@@ -33,8 +33,10 @@ def wait_until(predicate: Callable[[], object], timeout_s: float, interval_s: fl
 class Proc:
     """A child process whose output goes to files (no pipe can fill up and block it)."""
 
-    def __init__(self, args: list[str], log_dir: Path, name: str, env: dict | None = None) -> None:
+    def __init__(self, args: list[str], log_dir: Path, name: str, env: dict | None = None, nice: int = 0) -> None:
         self.name = name
+        if nice:  # nice(1) execs the command: the pid stays the command's own
+            args = ["nice", "-n", str(nice), *args]
         self.out_path = log_dir / f"{name}.out"
         self.err_path = log_dir / f"{name}.err"
         self._out = self.out_path.open("wb")
@@ -75,13 +77,15 @@ class Proc:
         self._err.close()
 
 
-def start_mock_nodes(scenario: Path, link_dir: Path, log_dir: Path, *extra: str, name: str = "mock") -> Proc:
-    proc = Proc(
+def start_mock_nodes(
+    scenario: Path, link_dir: Path, log_dir: Path, *extra: str, name: str = "mock", nice: int = 0
+) -> Proc:
+    return Proc(
         [PYTHON, "-m", "pipesentry", "mock-node", "--scenario", str(scenario), "--link-dir", str(link_dir), *extra],
         log_dir,
         name,
+        nice=nice,
     )
-    return proc
 
 
 def wait_for_links(link_dir: Path, node_ids: list[str], proc: Proc, timeout_s: float = 30.0) -> None:
@@ -93,8 +97,10 @@ def wait_for_links(link_dir: Path, node_ids: list[str], proc: Proc, timeout_s: f
     wait_until(ready, timeout_s, what=f"mock node ports {node_ids}")
 
 
-def start_gateway(config: Path, log_dir: Path, name: str = "gateway", env: dict | None = None) -> Proc:
-    return Proc([PYTHON, "-m", "pipesentry", "gateway", "--config", str(config)], log_dir, name, env=env)
+def start_gateway(
+    config: Path, log_dir: Path, name: str = "gateway", env: dict | None = None, nice: int = 0
+) -> Proc:
+    return Proc([PYTHON, "-m", "pipesentry", "gateway", "--config", str(config)], log_dir, name, env=env, nice=nice)
 
 
 def gateway_config(db_path: Path, nodes: list[dict], **top) -> str:
