@@ -115,6 +115,16 @@ class NodeRow(Base):
     state: Mapped[NodeState] = mapped_column(_enum(NodeState, "node_state"))
     latest_di_peak: Mapped[float | None] = mapped_column(Float)
     latest_threshold: Mapped[float | None] = mapped_column(Float)
+    # Set by an admin through the API (revision 0002): how people name and find the node.
+    label: Mapped[str | None] = mapped_column(String(128))
+    location: Mapped[str | None] = mapped_column(String(256))
+    notes: Mapped[str | None] = mapped_column(Text)
+    details_updated_at: Mapped[datetime | None]
+    details_updated_by: Mapped[str | None] = mapped_column(String(128))
+    # A decommissioned node is not polled and raises no outage alert; its history is kept.
+    decommissioned_at: Mapped[datetime | None]
+    decommissioned_by: Mapped[str | None] = mapped_column(String(128))
+    decommission_reason: Mapped[str | None] = mapped_column(Text)
 
 
 class MeasurementRow(Base):

@@ -63,7 +63,7 @@ def test_migrations_produce_exactly_the_schema_the_models_describe(any_db):
 
 
 def test_read_only_open_of_an_empty_database_says_schema_out_of_date(sqlite_url):
-    with pytest.raises(SchemaOutOfDate, match=r"empty .* needs 0001"):
+    with pytest.raises(SchemaOutOfDate, match=rf"empty .* needs {head_revision()}"):
         open_database(sqlite_url, upgrade=False)
 
 
@@ -186,6 +186,30 @@ def test_an_installed_copy_of_the_package_migrates_without_the_repository(tmp_pa
     module_file, revision = result.stdout.split()
     assert module_file.startswith(str(site))
     assert revision == head_revision()
+
+
+def test_a_database_of_the_first_release_upgrades_keeping_its_nodes(sqlite_url):
+    from sqlalchemy import create_engine
+
+    engine = create_engine(sqlite_url)
+    with engine.connect() as connection:  # the schema as release 0001 left it, with a node in it
+        command.upgrade(alembic_config(connection), "0001")
+        connection.execute(text(
+            "INSERT INTO nodes (node_id, port_url, firmware, protocol_version, n_channels, fs_hz, geometry,"
+            " first_seen_at, last_seen_at, online, error_counters, state)"
+            " VALUES ('old-node', 'serial:///dev/ttyUSB0', '1.0.0', 2, 8, 2000000.0, '{}',"
+            " '2026-11-01 00:00:00.000000', '2026-11-02 00:00:00.000000', 1, '{}', 'damage')"
+        ))
+        connection.commit()
+    engine.dispose()
+    database = open_database(sqlite_url)  # the gateway's open: upgrades to head
+    try:
+        assert database.schema_revision() == head_revision() != "0001"
+        with database.session() as session:
+            node = get_node(session, "old-node")
+            assert node.state.value == "damage" and node.decommissioned_at is None and node.label is None
+    finally:
+        database.dispose()
 
 
 def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
