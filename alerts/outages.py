@@ -28,7 +28,8 @@ def check_outages(
     Call inside ``Database.write()``; returns the events added.
     """
     added = []
-    for node in list_nodes(session):
+    # A decommissioned node is not polled: its silence is intended, not an outage.
+    for node in list_nodes(session, include_decommissioned=False):
         open_outage = _open_outage(session, node.node_id)
         if open_outage is None:
             reference = max(node.last_seen_at, watching_since)

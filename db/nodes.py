@@ -1,4 +1,5 @@
-"""Nodes: registration from INFO replies, and the gateway's view of their health."""
+"""Nodes: registration from INFO replies, the gateway's view of their health, and what an
+admin decides about them (label, location, notes; decommissioning)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -8,7 +9,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
-from db.errors import NotFound
+from db.errors import NotFound, StateConflict
 from db.models import NodeRow, NodeState
 from db.records import NodeInfo
 
@@ -21,9 +22,68 @@ def get_node(session: Session, node_id: str) -> NodeRow:
     return node
 
 
-def list_nodes(session: Session) -> Sequence[NodeRow]:
-    """All nodes, ordered by node_id."""
-    return session.scalars(select(NodeRow).order_by(NodeRow.node_id)).all()
+def list_nodes(session: Session, *, include_decommissioned: bool = True) -> Sequence[NodeRow]:
+    """All nodes (or only those in service), ordered by node_id."""
+    statement = select(NodeRow).order_by(NodeRow.node_id)
+    if not include_decommissioned:
+        statement = statement.where(NodeRow.decommissioned_at.is_(None))
+    return session.scalars(statement).all()
+
+
+# Fields an admin may set with update_node_details, and "leave as is".
+NODE_DETAILS = ("label", "location", "notes")
+
+
+def update_node_details(
+    session: Session, node_id: str, changes: Mapping[str, str | None], *, who: str, now: datetime | None = None
+) -> NodeRow:
+    """Set some of the node's label, location and notes (None clears one); records who and when."""
+    unknown = set(changes) - set(NODE_DETAILS)
+    if unknown:
+        raise ValueError(f"not node details: {sorted(unknown)}")
+    node = get_node(session, node_id)
+    for name, value in changes.items():
+        setattr(node, name, value)
+    node.details_updated_at = now or utc_now()
+    node.details_updated_by = who
+    session.flush()
+    return node
+
+
+def decommission_node(
+    session: Session, node_id: str, *, who: str, reason: str, now: datetime | None = None
+) -> NodeRow:
+    """Take the node out of service: the gateway stops polling it, no outage alert is raised for it.
+
+    Its history stays. Raises :class:`StateConflict` if it is decommissioned already (the
+    first decision, with its who and why, is kept).
+    """
+    node = get_node(session, node_id)
+    if node.decommissioned_at is not None:
+        raise StateConflict(
+            f"node {node_id!r} was decommissioned at {node.decommissioned_at.isoformat()} by {node.decommissioned_by}"
+        )
+    node.decommissioned_at = now or utc_now()
+    node.decommissioned_by = who
+    node.decommission_reason = reason
+    session.flush()
+    return node
+
+
+def recommission_node(session: Session, node_id: str) -> NodeRow:
+    """Put a decommissioned node back in service; raises :class:`StateConflict` if it is in service."""
+    node = get_node(session, node_id)
+    if node.decommissioned_at is None:
+        raise StateConflict(f"node {node_id!r} is in service")
+    node.decommissioned_at = node.decommissioned_by = node.decommission_reason = None
+    session.flush()
+    return node
+
+
+def is_decommissioned(session: Session, node_id: str) -> bool:
+    """True for a known node an admin has decommissioned (an unknown node is not)."""
+    decommissioned_at = session.scalar(select(NodeRow.decommissioned_at).where(NodeRow.node_id == node_id))
+    return decommissioned_at is not None
 
 
 def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = None) -> NodeRow:

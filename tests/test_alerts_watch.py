@@ -44,6 +44,19 @@ def test_the_gateways_own_downtime_does_not_count_against_the_nodes(outbox_db):
     assert check(outbox_db, restarted + timedelta(minutes=11), watching_since=restarted) == [EventKind.NODE_OFFLINE] * 3
 
 
+def test_a_decommissioned_node_is_not_reported_offline_until_it_is_back_in_service(outbox_db):
+    from db.nodes import decommission_node, recommission_node
+
+    with outbox_db.write() as session:
+        decommission_node(session, "node-c", who="admin:ops", reason="removed with the old line", now=T0)
+    assert check(outbox_db, T0 + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE] * 2  # node-a, node-b
+    with outbox_db.session() as session:
+        assert {e.node_id for e in events_of_kind(session, EventKind.NODE_OFFLINE)} == {"node-a", "node-b"}
+    with outbox_db.write() as session:
+        recommission_node(session, "node-c")
+    assert check(outbox_db, T0 + timedelta(minutes=12)) == [EventKind.NODE_OFFLINE]  # silent since T0
+
+
 def test_every_new_baseline_gets_one_event_whoever_set_it(outbox_db):
     from alerts.baseline_watch import check_baseline_changes
     from db.baselines import set_active_baseline
