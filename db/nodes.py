@@ -66,6 +66,7 @@ def decommission_node(
     node.decommissioned_at = now or utc_now()
     node.decommissioned_by = who
     node.decommission_reason = reason
+    node.online = False  # the gateway lets go of it
     session.flush()
     return node
 

@@ -21,10 +21,11 @@ from db.database import Database
 from db.errors import StorageError, StorageUnavailable
 from db.measurements import add_event, store_measurement
 from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, NodeState
-from db.nodes import get_node, record_node_health, upsert_node
+from db.nodes import get_node, is_decommissioned, record_node_health, upsert_node
 from db.records import DiMapInput, MapGrid, NodeInfo, StateChangeInput
 from alerts.config import AlertingSettings
 from alerts.events import state_change_event
+from alerts.sensor_faults import check_sensor_faults
 from gateway.config import NodeSettings
 from gateway.assessment import BaselineLibrary, assess_settings, detection_input, joins_library, run_assessment
 from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
@@ -109,6 +110,7 @@ class NodeWorker:
         self._threshold_cache: tuple[int, float | None] | None = None
         self._flag_loaded = False
         self._n_baselines = 0
+        self._out_of_service = False
         self.thread = threading.Thread(target=self.run, name=f"node-{settings.id}", daemon=True)
 
     @property
@@ -127,6 +129,10 @@ class NodeWorker:
                     break
                 started = time.monotonic()
                 try:
+                    if self._decommissioned():
+                        self.heartbeats.beat(self.name)  # idle by decision, not hung
+                        next_due = started + self.settings.interval_s
+                        continue
                     outcome = self.poll_once()
                 except PortVanished as exc:
                     failures += 1
@@ -170,6 +176,20 @@ class NodeWorker:
                 else:
                     next_due = max(started + self.settings.interval_s, time.monotonic())
             self._close()
+
+    def _decommissioned(self) -> bool:
+        """True while an admin has decommissioned this node (API): its port is released, nothing is
+        polled, and the check repeats every interval so that recommissioning resumes polling."""
+        with self.db.session() as session:
+            decommissioned = is_decommissioned(session, self.settings.id)
+        if decommissioned != self._out_of_service:
+            self._out_of_service = decommissioned
+            if decommissioned:
+                log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
+                self._close()
+            else:
+                log.info("node recommissioned (API); polling again")
+        return decommissioned
 
     def _drop_connection(self, why: str) -> None:
         log.warning("%s; reopening with backoff", why)
@@ -436,12 +456,17 @@ class NodeWorker:
                 )
                 if event is not None:
                     add_event(session, event, node_id=self.settings.id)
+            # Receivers turned faulty or healthy again: in the same transaction as the detection.
+            fault_events = check_sensor_faults(session, self.alerting, node_id=self.settings.id, measurement_id=row.id,
+                                               faults=detection.sensor_faults, state=new_state.value)
             record_node_health(session, self.settings.id, online=True, error_counters=node_errors)
             measurement_id = row.id
         self.flag = new_flag
         if joins:
             log.info("measurement %d joins the baseline library at %.2f degC (%d baselines)",
                      measurement_id, transfer.temperature_c, len(library) + 1)
+        for event in fault_events:
+            log.warning("%s: %s", event.kind, event.payload["summary"])
         if change is not None:
             log.warning("state %s -> %s", change.from_state.value, change.to_state.value,
                         extra={"from_state": change.from_state.value, "to_state": change.to_state.value})

@@ -245,3 +245,33 @@ def test_no_flag_on_sound_pipes_under_noise_and_temperature_drift(run_dir):
         peaks = s.scalars(select(DetectionRow.peak_di)).all()
         assert max(peaks) < fixed["absolute"]
     db.dispose()
+
+
+def test_a_decommissioned_node_is_left_alone_until_it_is_recommissioned(run_dir):
+    from db.nodes import decommission_node, recommission_node
+
+    ids = ["kept", "retired"]
+    mock, config, url = start_fleet(run_dir, write_scenario(run_dir / "s.toml", ids), ids, interval_s=0.3)
+    gw = start_gateway(config, run_dir)
+    try:
+        wait_until(lambda: min(counts(url).get(n, 0) for n in ids) >= 3, 120, 0.3, what="3 measurements per node")
+        db = open_database(url, upgrade=False)
+        try:
+            with db.write() as session:
+                decommission_node(session, "retired", who="admin:test", reason="line removed")
+            wait_until(lambda: "not polling until it is recommissioned" in gw.stderr, 30, 0.2, what="the gateway noticing")
+            frozen = counts(url)["retired"]
+            kept = counts(url)["kept"]
+            wait_until(lambda: counts(url)["kept"] >= kept + 5, 120, 0.3, what="5 more measurements of the kept node")
+            assert counts(url)["retired"] == frozen
+            with db.session() as session:
+                assert session.get(NodeRow, "retired").online is False
+            with db.write() as session:
+                recommission_node(session, "retired")
+            wait_until(lambda: counts(url)["retired"] >= frozen + 2, 120, 0.3, what="polling again after recommissioning")
+        finally:
+            db.dispose()
+        assert "polling again" in gw.stderr
+    finally:
+        gw.close()
+        mock.close()
