@@ -106,6 +106,11 @@ class AlertingSettings(_Section):
     )
     offline_after_s: float = Field(600.0, gt=0, description="a node unseen this long raises node_offline")
     poll_interval_s: float = Field(1.0, gt=0, le=60, description="how often an idle sink looks at the outbox")
+    sensor_fault_count: int = Field(
+        2, ge=1, le=100,
+        description="a receiver faulty in this many consecutive measurements raises sensor_fault; "
+        "healthy in as many clears it",
+    )
     sinks: list[AnySinkSettings] = Field(default_factory=list)
 
     @field_validator("api_base_url")

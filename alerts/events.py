@@ -31,6 +31,8 @@ class EventKind(StrEnum):
     NODE_ONLINE = "node_online"
     BASELINE_CHANGED = "baseline_changed"
     SINK_DISABLED = "sink_disabled"  # a receiver answered 410 Gone
+    SENSOR_FAULT = "sensor_fault"  # a receiver (transducer channel) of a node became faulty
+    SENSOR_FAULT_CLEARED = "sensor_fault_cleared"  # that receiver is healthy again
 
 
 # Node states as strings: the gateway's flagger has more states than the stored enum.
@@ -42,6 +44,8 @@ STATE_KINDS = frozenset(
     {EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED, EventKind.MONITORING_BLIND, EventKind.MONITORING_RESTORED}
 )
 OUTAGE_KINDS = frozenset({EventKind.NODE_OFFLINE, EventKind.NODE_ONLINE})
+# Kinds about one receiver of a node (payload "receiver": {rx_index, rx_angle_deg, kind, ...}).
+SENSOR_FAULT_KINDS = frozenset({EventKind.SENSOR_FAULT, EventKind.SENSOR_FAULT_CLEARED})
 
 
 def event_id(*parts: object) -> uuid.UUID:
@@ -213,6 +217,81 @@ def sink_disabled_event(
     return EventInput(kind=EventKind.SINK_DISABLED, severity=Severity.WARNING, payload=payload, sinks=sinks, id=eid)
 
 
+def sensor_fault_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    fault: dict[str, Any],
+    measurement_id: int,
+    state: str,
+    faulty_receivers: list[int],
+    consecutive: int,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``sensor_fault`` (warning): a receiver was faulty in ``consecutive`` measurements in a row.
+
+    ``fault`` is the receiver's entry of ``detections.sensor_faults`` in this measurement
+    (``imaging.health.SensorFault.as_dict()``: rx_index, rx_angle_deg, kind, amplitude_ratio,
+    delay_s). The receiver is left out of the DI map until it is healthy again, so the
+    node sees less of the pipe. One id per (node, receiver, measurement that raised it).
+    """
+    occurred_at = occurred_at or utc_now()
+    receiver = _receiver(fault)
+    rx = receiver["rx_index"]
+    eid = event_id(EventKind.SENSOR_FAULT, node_id, rx, measurement_id)
+    payload = _payload(
+        settings, eid, EventKind.SENSOR_FAULT, node_id, Severity.WARNING, Severity.WARNING, occurred_at,
+        summary=f"node {node_id} {_receiver_text(receiver)} faulty: {fault_text(receiver)} in {consecutive} "
+        "consecutive measurements; left out of the DI map, coverage reduced",
+        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
+               "consecutive_measurements": consecutive},
+    )
+    return EventInput(
+        kind=EventKind.SENSOR_FAULT, severity=Severity.WARNING, payload=payload,
+        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
+    )
+
+
+def sensor_fault_cleared_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    raised_event_id: uuid.UUID,
+    raised_receiver: dict[str, Any],
+    raised_measurement_id: int | None,
+    measurement_id: int,
+    state: str,
+    faulty_receivers: list[int],
+    consecutive: int,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``sensor_fault_cleared`` (info, routed like the ``sensor_fault`` it ends): the receiver
+    was healthy in ``consecutive`` measurements in a row and is back in the DI map.
+
+    ``raised_receiver`` is the ``receiver`` of the ``sensor_fault`` event it clears (the same
+    rx_index and kind, so Alertmanager resolves the same label set). One clearing per raise:
+    the id is derived from the raised event's id.
+    """
+    occurred_at = occurred_at or utc_now()
+    receiver = _receiver(raised_receiver)
+    eid = event_id(EventKind.SENSOR_FAULT_CLEARED, raised_event_id)
+    since = "" if raised_measurement_id is None else f" since measurement {raised_measurement_id}"
+    payload = _payload(
+        settings, eid, EventKind.SENSOR_FAULT_CLEARED, node_id, Severity.INFO, Severity.WARNING, occurred_at,
+        summary=f"node {node_id} {_receiver_text(receiver)} healthy again in {consecutive} consecutive "
+        f"measurements (was {receiver['kind']}{since}); back in the DI map",
+        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
+               "consecutive_measurements": consecutive, "raised_event_id": str(raised_event_id),
+               "raised_measurement_id": raised_measurement_id},
+    )
+    return EventInput(
+        kind=EventKind.SENSOR_FAULT_CLEARED, severity=Severity.INFO, payload=payload,
+        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
+    )
+
+
 def _payload(
     settings: AlertingSettings,
     eid: uuid.UUID,
@@ -283,6 +362,44 @@ def detection_text(detection: dict[str, Any] | None) -> str:
     if detection.get("threshold") is None:
         return f"DI {detection['peak_di']:.3g} (no threshold yet)"
     return f"DI {detection['peak_di']:.3g} vs threshold {detection['threshold']:.3g}"
+
+
+def _receiver(fault: dict[str, Any]) -> dict[str, Any]:
+    """A sensor fault as it travels in events: rx_index, rx_angle_deg, kind, amplitude_ratio, delay_s."""
+    try:
+        rx_index, kind = int(fault["rx_index"]), str(fault["kind"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"a sensor fault needs an integer rx_index and a kind, got {fault!r}") from exc
+    return {
+        "rx_index": rx_index,
+        "rx_angle_deg": _number(fault.get("rx_angle_deg")),
+        "kind": kind,
+        "amplitude_ratio": _number(fault.get("amplitude_ratio")),
+        "delay_s": _number(fault.get("delay_s")),
+    }
+
+
+def _number(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def _receiver_text(receiver: dict[str, Any]) -> str:
+    angle = receiver.get("rx_angle_deg")
+    return f"receiver {receiver['rx_index']}" + ("" if angle is None else f" ({angle:.0f} deg)")
+
+
+def fault_text(receiver: dict[str, Any] | None) -> str:
+    """What is wrong with a receiver, in words (imaging/health.py's kinds)."""
+    if not receiver:
+        return "fault n/a"
+    kind, ratio, delay = receiver.get("kind"), receiver.get("amplitude_ratio"), receiver.get("delay_s")
+    if kind == "no_signal":
+        return "no signal" + ("" if ratio is None else f" (direct arrival at {ratio:.0%} of baseline)")
+    if kind == "amplitude" and ratio is not None:
+        return f"amplitude (direct arrival at {ratio:.0%} of baseline)"
+    if kind == "timing" and delay is not None:
+        return f"timing (direct arrival shifted {delay * 1e6:+.2f} us)"
+    return str(kind)
 
 
 def _state_summary(kind, node_id, from_state, to_state, detection, location) -> str:

@@ -11,7 +11,7 @@ from sqlalchemy import select
 
 from alerts.config import AlertingSettings
 from alerts.delivery import SinkWorker, make_transport
-from alerts.events import state_change_event
+from alerts.events import sensor_fault_cleared_event, sensor_fault_event, state_change_event
 from db.database import Database, open_database
 from db.measurements import add_event
 from db.models import DeliveryRow, EventRow
@@ -63,6 +63,31 @@ def put_state_events(database: Database, settings: AlertingSettings, node_ids=NO
             with database.write() as session:
                 add_event(session, event, node_id=node_id)
             events.append(event)
+    return events
+
+
+def dead_receiver(rx_index: int = 5, kind: str = "no_signal") -> dict:
+    """A receiver's entry in ``detections.sensor_faults`` (``imaging.health.SensorFault.as_dict()``)."""
+    return {"rx_index": rx_index, "rx_angle_deg": rx_index * 22.5, "kind": kind, "amplitude_ratio": 0.03,
+            "delay_s": 0.0}
+
+
+def put_sensor_fault_events(database: Database, settings: AlertingSettings, node_id: str = "node-a",
+                            fault: dict | None = None, *, cleared: bool = True,
+                            measurement_id: int = 7) -> list[EventInput]:
+    """A receiver of ``node_id`` raised faulty (and, with ``cleared``, healthy again two measurements later)."""
+    fault = fault or dead_receiver()
+    raised = sensor_fault_event(settings, node_id=node_id, fault=fault, measurement_id=measurement_id, state="ok",
+                                faulty_receivers=[fault["rx_index"]], consecutive=2, occurred_at=T0)
+    events = [raised]
+    if cleared:
+        events.append(sensor_fault_cleared_event(
+            settings, node_id=node_id, raised_event_id=raised.id, raised_receiver=raised.payload["receiver"],
+            raised_measurement_id=measurement_id, measurement_id=measurement_id + 2, state="ok", faulty_receivers=[],
+            consecutive=2, occurred_at=T0 + timedelta(minutes=2)))
+    for event in events:
+        with database.write() as session:
+            add_event(session, event, node_id=node_id)
     return events
 
 

@@ -12,6 +12,8 @@ from alerts.events import (
     baseline_changed_event,
     node_offline_event,
     node_online_event,
+    sensor_fault_cleared_event,
+    sensor_fault_event,
     sink_disabled_event,
     state_change_event,
 )
@@ -108,3 +110,36 @@ def test_a_disabled_sink_is_reported_to_the_others_only():
     event = sink_disabled_event(SETTINGS, sink_name="warnings", endpoint_fingerprint="abc", status_code=410)
     assert event.sinks == ("all",) and event.payload["sink"] == "warnings"
     assert isinstance(event.id, uuid.UUID)
+
+
+def test_a_sensor_fault_names_node_receiver_and_fault_and_its_clearing_points_back_to_it():
+    fault = {"rx_index": 3, "rx_angle_deg": 67.5, "kind": "timing", "amplitude_ratio": 0.97, "delay_s": 4.1e-6}
+    raised = sensor_fault_event(SETTINGS, node_id="n1", fault=fault, measurement_id=88, state="ok",
+                                faulty_receivers=[3, 1], consecutive=2, occurred_at=T0)
+    assert raised.kind == EventKind.SENSOR_FAULT and raised.severity == Severity.WARNING
+    assert raised.sinks == ("all", "warnings") and raised.payload["receiver"] == fault
+    assert raised.payload["faulty_receivers"] == [1, 3]
+    assert raised.payload["links"]["measurement"].endswith("/api/v1/measurements/88")
+    assert "n1 receiver 3 (68 deg) faulty: timing (direct arrival shifted +4.10 us)" in raised.payload["summary"]
+    cleared = sensor_fault_cleared_event(SETTINGS, node_id="n1", raised_event_id=raised.id,
+                                         raised_receiver=raised.payload["receiver"], raised_measurement_id=88,
+                                         measurement_id=91, state="ok", faulty_receivers=[1], consecutive=2)
+    assert cleared.kind == EventKind.SENSOR_FAULT_CLEARED and cleared.severity == Severity.INFO
+    assert cleared.sinks == raised.sinks, "the clearing goes wherever the fault went"
+    assert cleared.payload["receiver"] == fault and cleared.payload["raised_event_id"] == str(raised.id)
+    assert "healthy again" in cleared.payload["summary"] and "was timing since measurement 88" in cleared.payload["summary"]
+
+
+def test_sensor_fault_ids_are_stable_per_node_receiver_and_measurement():
+    def raised(node_id="n1", rx=3, measurement_id=88):
+        fault = {"rx_index": rx, "rx_angle_deg": 0.0, "kind": "no_signal", "amplitude_ratio": 0.0, "delay_s": 0.0}
+        return sensor_fault_event(SETTINGS, node_id=node_id, fault=fault, measurement_id=measurement_id,
+                                  state="ok", faulty_receivers=[rx], consecutive=2).id
+    assert raised() == raised()
+    assert len({raised(), raised(node_id="n2"), raised(rx=4), raised(measurement_id=89)}) == 4
+
+
+def test_a_sensor_fault_without_a_receiver_index_is_refused():
+    with pytest.raises(ValueError, match="rx_index"):
+        sensor_fault_event(SETTINGS, node_id="n1", fault={"kind": "no_signal"}, measurement_id=1, state="ok",
+                           faulty_receivers=[], consecutive=2)
