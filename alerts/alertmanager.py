@@ -8,8 +8,10 @@ database — the newest state event per node this sink has acknowledged — so a
 resumes the re-sends. The event id travels as the ``event_id`` annotation.
 
 Alerts per node: ``PipeSentryPipeDamage`` (state suspected: severity warning; damage:
-critical), ``PipeSentryMonitoringBlind`` (no_valid_baseline) and ``PipeSentryNodeOffline``.
-Other events (baseline changes, ...) are not alerts here and are acknowledged without a request.
+critical), ``PipeSentryMonitoringBlind`` (no_valid_baseline) and ``PipeSentryNodeOffline``;
+per receiver of a node: ``PipeSentrySensorFault`` (sensor_fault fires it, its
+sensor_fault_cleared ends it with the same labels). Other events (baseline changes, ...) are
+not alerts here and are acknowledged without a request.
 """
 from __future__ import annotations
 
@@ -22,9 +24,17 @@ from typing import Any
 
 from alerts.config import AlertmanagerSinkSettings
 from alerts.errors import AlertError
-from alerts.events import OUTAGE_KINDS, STATE_KINDS, EventKind, detection_text, location_text
+from alerts.events import (
+    OUTAGE_KINDS,
+    SENSOR_FAULT_KINDS,
+    STATE_KINDS,
+    EventKind,
+    detection_text,
+    fault_text,
+    location_text,
+)
 from alerts.http_post import fingerprint, http_client, post
-from alerts.outbox import OutboxEvent, latest_delivered
+from alerts.outbox import OutboxEvent, delivered_events, latest_delivered
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
@@ -39,6 +49,7 @@ _STATE_ALERTS = {
     "no_valid_baseline": ("PipeSentryMonitoringBlind", "warning"),
 }
 OFFLINE_ALERT = "PipeSentryNodeOffline"
+SENSOR_FAULT_ALERT = "PipeSentrySensorFault"
 
 
 def state_labels(node_id: str, state: str) -> dict[str, str]:
@@ -50,6 +61,12 @@ def offline_labels(node_id: str) -> dict[str, str]:
     return {"alertname": OFFLINE_ALERT, "node": node_id, "severity": "warning"}
 
 
+def sensor_fault_labels(node_id: str, receiver: dict[str, Any]) -> dict[str, str]:
+    """One alert per (node, receiver); ``kind`` is the fault as raised (its clearing carries the same)."""
+    return {"alertname": SENSOR_FAULT_ALERT, "node": node_id, "rx_index": str(receiver["rx_index"]),
+            "kind": str(receiver["kind"]), "severity": "warning"}
+
+
 def rfc3339(moment: datetime) -> str:
     return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
@@ -59,7 +76,8 @@ def postable_alerts(item: OutboxEvent, *, now: datetime, resend_interval_s: floa
 
     A state event fires the alert of its new state and ends the node's other state alerts
     (so suspected -> damage ends the warning and fires the critical one), except that going
-    blind keeps the alarm it came from firing; node_offline fires, node_online ends it.
+    blind keeps the alarm it came from firing; node_offline fires, node_online ends it;
+    sensor_fault fires its receiver's alert, sensor_fault_cleared ends it.
     """
     payload = item.payload
     node_id = item.node_id
@@ -79,6 +97,8 @@ def postable_alerts(item: OutboxEvent, *, now: datetime, resend_interval_s: floa
             alerts = [(labels, True) for labels, firing in alerts if firing or labels["state"] == kept]
     elif item.kind in OUTAGE_KINDS:
         alerts = [(offline_labels(node_id), item.kind == EventKind.NODE_OFFLINE)]
+    elif item.kind in SENSOR_FAULT_KINDS:
+        alerts = [(sensor_fault_labels(node_id, payload["receiver"]), item.kind == EventKind.SENSOR_FAULT)]
     result = []
     for labels, firing in alerts:
         if firing_only and not firing:
@@ -102,13 +122,22 @@ def _annotations(item: OutboxEvent) -> dict[str, str]:
         "summary": str(payload.get("summary") or item.kind),
         "event_id": str(item.event_id),
         "event_kind": item.kind,
-        "location": location_text(payload.get("location")),
-        "di": detection_text(payload.get("detection")),
     }
+    if item.kind in SENSOR_FAULT_KINDS:
+        annotations["receiver"] = fault_text(payload.get("receiver"))
+    else:
+        annotations["location"] = location_text(payload.get("location"))
+        annotations["di"] = detection_text(payload.get("detection"))
     for key in ("measurement", "di_map_png", "node"):
         if key in links:
             annotations[f"{key}_url"] = str(links[key])
     return annotations
+
+
+def open_sensor_faults(delivered: list[OutboxEvent]) -> list[OutboxEvent]:
+    """The sensor_fault events among ``delivered`` whose sensor_fault_cleared is not among them."""
+    cleared = {str(i.payload.get("raised_event_id")) for i in delivered if i.kind == EventKind.SENSOR_FAULT_CLEARED}
+    return [i for i in delivered if i.kind == EventKind.SENSOR_FAULT and str(i.event_id) not in cleared]
 
 
 class AlertmanagerTransport:
@@ -153,12 +182,14 @@ class AlertmanagerTransport:
                         self.settings.name, self.settings.resend_interval_s, exc)
 
     def active_alerts(self) -> list[dict[str, Any]]:
-        """Firing alerts implied by the newest acknowledged state/outage event of each node."""
+        """Firing alerts implied by the newest acknowledged state/outage event of each node and
+        by each acknowledged sensor_fault whose clearing was not acknowledged yet."""
         now = self._clock()
         with self.database.session() as session:
             latest = latest_delivered(session, self.settings.name, STATE_KINDS) + latest_delivered(
                 session, self.settings.name, OUTAGE_KINDS
             )
+            latest += open_sensor_faults(delivered_events(session, self.settings.name, SENSOR_FAULT_KINDS))
         alerts = []
         for item in latest:
             alerts += postable_alerts(item, now=now, resend_interval_s=self.settings.resend_interval_s, firing_only=True)

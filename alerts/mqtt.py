@@ -1,7 +1,10 @@
 """MQTT sink: each node's latest state as a retained QoS 1 message on ``{topic_prefix}/{node_id}/state``.
 
 A subscriber that connects at any time gets the node's current state at once (retained);
-every event about the node replaces it, in order. An attempt counts as delivered only
+every event about the node replaces it, in order. Sensor fault events go instead to the
+receiver's own retained topic ``{topic_prefix}/{node_id}/receivers/{rx_index}``
+(``"faulty": true`` from sensor_fault, replaced by ``"faulty": false`` from
+sensor_fault_cleared), so the state topic keeps the node's state. An attempt counts as delivered only
 when the broker's PUBACK arrived within ``timeout_s``. The payload's ``event_id`` is the
 idempotency key. Events without a node go, not retained, to ``gateway_topic``.
 """
@@ -17,6 +20,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from alerts.config import MqttSinkSettings
 from alerts.errors import DeliveryFailed
+from alerts.events import SENSOR_FAULT_KINDS, EventKind
 from alerts.http_post import fingerprint
 from alerts.outbox import OutboxEvent
 
@@ -28,12 +32,30 @@ def state_topic(settings: MqttSinkSettings, node_id: str) -> str:
     return f"{settings.topic_prefix.rstrip('/')}/{node_id}/state"
 
 
+def receiver_topic(settings: MqttSinkSettings, node_id: str, rx_index: int) -> str:
+    return f"{settings.topic_prefix.rstrip('/')}/{node_id}/receivers/{rx_index}"
+
+
+def mqtt_topic(settings: MqttSinkSettings, item: OutboxEvent) -> tuple[str, bool]:
+    """Where ``item`` is published and whether retained."""
+    if item.node_id is None:
+        return GATEWAY_TOPIC, False
+    if item.kind in SENSOR_FAULT_KINDS:
+        return receiver_topic(settings, item.node_id, int(item.payload["receiver"]["rx_index"])), True
+    return state_topic(settings, item.node_id), True
+
+
 def mqtt_message(item: OutboxEvent) -> dict[str, Any]:
-    """The JSON document published for ``item`` (the node's state after the event)."""
+    """The JSON document published for ``item`` (the node's state after the event; for a
+    sensor fault event, the receiver's health: ``faulty``, ``receiver``, ``faulty_receivers``)."""
     payload = item.payload
     keys = ("node_id", "state", "previous_state", "online", "severity", "occurred_at", "summary",
             "measurement_id", "detection", "location", "links")
-    return {"event_id": str(item.event_id), "kind": item.kind, **{k: payload.get(k) for k in keys}}
+    message = {"event_id": str(item.event_id), "kind": item.kind, **{k: payload.get(k) for k in keys}}
+    if item.kind in SENSOR_FAULT_KINDS:
+        message.update(faulty=item.kind == EventKind.SENSOR_FAULT, receiver=payload.get("receiver"),
+                       faulty_receivers=payload.get("faulty_receivers"))
+    return message
 
 
 class MqttTransport:
@@ -50,10 +72,7 @@ class MqttTransport:
 
     def send(self, item: OutboxEvent) -> None:
         client = self._connection()
-        if item.node_id is None:
-            topic, retain = GATEWAY_TOPIC, False
-        else:
-            topic, retain = state_topic(self.settings, item.node_id), True
+        topic, retain = mqtt_topic(self.settings, item)
         body = json.dumps(mqtt_message(item), separators=(",", ":"), sort_keys=True)
         info = client.publish(topic, body, qos=QOS, retain=retain)
         try:

@@ -154,6 +154,21 @@ def latest_delivered(session: Session, sink: str, kinds: Iterable[str]) -> list[
     )
 
 
+def delivered_events(session: Session, sink: str, kinds: Iterable[str]) -> list[OutboxEvent]:
+    """Every event of ``kinds`` delivered to ``sink``, oldest first (for kinds that are rare: transitions)."""
+    rows = session.execute(
+        select(DeliveryRow, EventRow)
+        .join(EventRow, EventRow.id == DeliveryRow.event_id)
+        .where(
+            DeliveryRow.sink == sink,
+            DeliveryRow.status == DeliveryStatus.DELIVERED,
+            EventRow.kind.in_([str(k) for k in kinds]),
+        )
+        .order_by(EventRow.created_at, DeliveryRow.id)
+    ).all()
+    return [_outbox_event(delivery, event) for delivery, event in rows]
+
+
 def _first_per_node(session: Session, where: tuple, order_by: tuple) -> list[OutboxEvent]:
     """Of the deliveries matching ``where``, the first of each node in ``order_by``, oldest event first."""
     rank = func.row_number().over(partition_by=EventRow.node_id, order_by=order_by).label("rank")

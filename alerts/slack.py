@@ -21,6 +21,8 @@ ICONS = {
     "node_online": ":white_check_mark:",
     "baseline_changed": ":information_source:",
     "sink_disabled": ":warning:",
+    "sensor_fault": ":warning:",
+    "sensor_fault_cleared": ":white_check_mark:",
 }
 
 

@@ -72,22 +72,24 @@ def dead_receiver(rx_index: int = 5, kind: str = "no_signal") -> dict:
             "delay_s": 0.0}
 
 
-def put_sensor_fault_events(database: Database, settings: AlertingSettings, node_id: str = "node-a",
-                            fault: dict | None = None, *, cleared: bool = True,
-                            measurement_id: int = 7) -> list[EventInput]:
-    """A receiver of ``node_id`` raised faulty (and, with ``cleared``, healthy again two measurements later)."""
+def sensor_fault_pair(settings: AlertingSettings, node_id: str = "node-a", fault: dict | None = None, *,
+                      measurement_id: int = 7) -> tuple[EventInput, EventInput]:
+    """A receiver's sensor_fault (at ``measurement_id``) and its clearing two measurements later."""
     fault = fault or dead_receiver()
     raised = sensor_fault_event(settings, node_id=node_id, fault=fault, measurement_id=measurement_id, state="ok",
                                 faulty_receivers=[fault["rx_index"]], consecutive=2, occurred_at=T0)
-    events = [raised]
-    if cleared:
-        events.append(sensor_fault_cleared_event(
-            settings, node_id=node_id, raised_event_id=raised.id, raised_receiver=raised.payload["receiver"],
-            raised_measurement_id=measurement_id, measurement_id=measurement_id + 2, state="ok", faulty_receivers=[],
-            consecutive=2, occurred_at=T0 + timedelta(minutes=2)))
+    cleared = sensor_fault_cleared_event(
+        settings, node_id=node_id, raised_event_id=raised.id, raised_receiver=raised.payload["receiver"],
+        raised_measurement_id=measurement_id, measurement_id=measurement_id + 2, state="ok", faulty_receivers=[],
+        consecutive=2, occurred_at=T0 + timedelta(minutes=2))
+    return raised, cleared
+
+
+def put_events(database: Database, events: list[EventInput]) -> list[EventInput]:
+    """Each event in its own transaction, in order (as the gateway adds them)."""
     for event in events:
         with database.write() as session:
-            add_event(session, event, node_id=node_id)
+            add_event(session, event, node_id=event.payload["node_id"])
     return events
 
 

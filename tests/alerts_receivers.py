@@ -90,13 +90,14 @@ class HttpReceiver:
                     receiver._release.wait(HANG_LIMIT_S)
                     self.close_connection = True
                     return
+                # Recorded before answering: once the client has its answer, the test sees the request.
+                receiver._record(Request(self.path, headers, body, answer.status))
                 self.send_response(answer.status)
                 for name, value in answer.headers.items():
                     self.send_header(name, value)
                 self.send_header("Content-Length", "2")
                 self.end_headers()
                 self.wfile.write(b"ok")
-                receiver._record(Request(self.path, headers, body, answer.status))
 
         return Handler
 

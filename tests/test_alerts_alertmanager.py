@@ -5,13 +5,14 @@ from datetime import datetime
 
 import pytest
 
-from alerts.alertmanager import OFFLINE_ALERT, AlertmanagerTransport
+from alerts.alertmanager import OFFLINE_ALERT, SENSOR_FAULT_ALERT, AlertmanagerTransport
 from alerts.delivery import SinkWorker
 from alerts.events import node_offline_event, node_online_event
 from db.measurements import add_event
 from db.models import DeliveryStatus
 
 from alerts_fixtures import T0, alerting, deliveries, fast_policy, outbox_db, put_state_events, sink_worker, stop  # noqa: F401
+from alerts_fixtures import dead_receiver, put_events, sensor_fault_pair
 from alerts_receivers import HANG, alertmanager_receiver, fail
 from process_harness import wait_until
 
@@ -148,5 +149,47 @@ def test_going_blind_keeps_the_damage_alert_firing(outbox_db, stop):
         assert am.invalid == []
         resend = by_alert(am.requests[-1].json())
         assert set(resend) == {("PipeSentryPipeDamage", "damage"), ("PipeSentryMonitoringBlind", "no_valid_baseline")}
+    finally:
+        am.close()
+
+
+def test_a_sensor_fault_fires_per_receiver_is_re_sent_and_its_clearing_resolves_the_same_labels(outbox_db, stop):
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        clock = Monotonic()
+        worker = worker_with_clock(settings, outbox_db, stop, clock)
+        rx5_raised, rx5_cleared = sensor_fault_pair(settings, "node-a", dead_receiver(5))
+        rx2_raised, _ = sensor_fault_pair(settings, "node-a", dead_receiver(2, kind="timing"), measurement_id=8)
+        put_events(outbox_db, [rx5_raised, rx2_raised])
+        put_state_events(outbox_db, settings, node_ids=("node-b",), cycle=[("ok", "damage")])
+        worker.run_once()  # the first event of each node, then the re-send of what is active
+        worker.run_once()  # node-a's second fault
+        assert am.invalid == []
+        fired = am.requests[0].json()[0]
+        assert fired["labels"] == {"alertname": SENSOR_FAULT_ALERT, "node": "node-a", "rx_index": "5",
+                                   "kind": "no_signal", "severity": "warning"}
+        assert when(fired["endsAt"]) > when(fired["startsAt"])
+        assert fired["annotations"]["event_id"] == str(rx5_raised.id)
+        assert fired["annotations"]["receiver"] == "no signal (direct arrival at 3% of baseline)"
+        assert fired["generatorURL"].endswith("/api/v1/measurements/7") and "di" not in fired["annotations"]
+
+        clock.now_s += 3600
+        worker.run_once()
+        resend = am.requests[-1].json()
+        assert sorted((a["labels"]["alertname"], a["labels"]["node"], a["labels"].get("rx_index", "")) for a in resend) == [
+            ("PipeSentryPipeDamage", "node-b", ""), (SENSOR_FAULT_ALERT, "node-a", "2"), (SENSOR_FAULT_ALERT, "node-a", "5")]
+        assert all(when(a["endsAt"]) > when(a["startsAt"]) for a in resend)
+
+        put_events(outbox_db, [rx5_cleared])
+        worker.run_once()
+        ended = am.requests[-1].json()
+        assert len(ended) == 1 and ended[0]["labels"] == fired["labels"]
+        assert when(ended[0]["endsAt"]) == when(ended[0]["startsAt"]) and ended[0]["annotations"]["event_id"] == str(rx5_cleared.id)
+        clock.now_s += 3600
+        worker.run_once()
+        assert am.invalid == []
+        assert sorted(a["labels"].get("rx_index", "-") for a in am.requests[-1].json()) == ["-", "2"], \
+            "the cleared receiver is no longer re-sent, the other one still is"
     finally:
         am.close()

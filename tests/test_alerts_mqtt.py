@@ -17,6 +17,7 @@ from alerts.outbox import pending_heads
 from db.models import DeliveryStatus
 
 from alerts_fixtures import alerting, deliveries, fast_policy, outbox_db, put_state_events, sink_worker, stop  # noqa: F401
+from alerts_fixtures import dead_receiver, put_events, sensor_fault_pair
 from process_harness import wait_until
 
 pytestmark = pytest.mark.timeout(60)
@@ -173,3 +174,50 @@ def test_without_a_puback_the_try_fails_after_the_timeout(outbox_db):
         transport.close()
     finally:
         silent.close()
+
+
+def test_a_sensor_fault_is_retained_on_its_receiver_topic_until_its_clearing_replaces_it(broker, outbox_db, stop):
+    prefix = f"pstest-{uuid.uuid4().hex[:8]}/nodes"
+    topic = f"{prefix}/node-a/receivers/5"
+    live = Subscriber(f"{prefix}/#")
+    try:
+        settings = alerting(mqtt_sink(prefix))
+        raised, cleared = sensor_fault_pair(settings, "node-a", dead_receiver(5))
+        put_events(outbox_db, [raised])
+        worker = sink_worker(settings, "scada", outbox_db, stop)
+        worker.run_once()
+        late = Subscriber(f"{prefix}/#")  # connects after the fact: the receiver's health at once
+        try:
+            retained, = late.wait_for(1)
+        finally:
+            late.close()
+        assert retained.topic == topic and retained.retain and retained.qos == 1
+        health = json.loads(retained.payload)
+        assert health["faulty"] is True and health["kind"] == "sensor_fault" and health["event_id"] == str(raised.id)
+        assert health["receiver"]["kind"] == "no_signal" and health["faulty_receivers"] == [5]
+        assert health["node_id"] == "node-a" and health["links"]["measurement"].endswith("/measurements/7")
+
+        put_events(outbox_db, [cleared])
+        worker.run_once()
+        messages = live.wait_for(2)
+        assert [m.topic for m in messages] == [topic, topic], "the node's state topic is left alone"
+        assert json.loads(messages[1].payload)["faulty"] is False
+        late = Subscriber(f"{prefix}/#")
+        try:
+            retained, = late.wait_for(1)
+        finally:
+            late.close()
+        assert json.loads(retained.payload) == json.loads(messages[1].payload)
+        assert json.loads(retained.payload)["event_id"] == str(cleared.id)
+    finally:
+        live.close()
+        clear_topic(topic)
+
+
+def clear_topic(topic: str) -> None:
+    client = mqtt.Client(CallbackAPIVersion.VERSION2)
+    client.connect(*BROKER)
+    client.loop_start()
+    client.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
+    client.disconnect()
+    client.loop_stop()

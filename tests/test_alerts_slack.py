@@ -10,6 +10,7 @@ from alerts.slack import slack_text
 from db.models import DeliveryStatus
 
 from alerts_fixtures import alerting, deliveries, fast_policy, outbox_db, put_state_events, sink_worker, stop  # noqa: F401
+from alerts_fixtures import dead_receiver, put_events, sensor_fault_pair
 from alerts_receivers import HANG, HttpReceiver, fail
 from process_harness import wait_until
 
@@ -44,3 +45,22 @@ def test_slack_markup_characters_in_text_are_escaped(outbox_db):
         item, = pending_heads(session, "chat")
     odd = replace(item, payload={**item.payload, "summary": "a <b> & c"})
     assert slack_text(odd).startswith(":rotating_light: a &lt;b&gt; &amp; c |")
+
+
+def test_a_sensor_fault_and_its_clearing_read_as_one_line_each(outbox_db, stop):
+    receiver = HttpReceiver()
+    try:
+        settings = alerting({"type": "slack", "name": "chat", "url": receiver.url + "/hook", **fast_policy()})
+        raised, _ = put_events(outbox_db, list(sensor_fault_pair(settings, "node-a", dead_receiver(5))))
+        worker = sink_worker(settings, "chat", outbox_db, stop)
+        worker.run_once()
+        worker.run_once()
+        fault, back = (r.json()["text"] for r in receiver.accepted())
+        assert fault.startswith(":warning: node node-a receiver 5 (112 deg) faulty: no signal "
+                                "(direct arrival at 3% of baseline) in 2 consecutive measurements")
+        assert "<http://127.0.0.1:8000/api/v1/measurements/7|measurement 7>" in fault
+        assert fault.endswith(f"event {str(raised.id)[:8]}")
+        assert back.startswith(":white_check_mark: node node-a receiver 5 (112 deg) healthy again")
+        assert "was no_signal since measurement 7" in back and "\n" not in fault + back
+    finally:
+        receiver.close()

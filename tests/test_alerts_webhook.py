@@ -14,6 +14,7 @@ from db.clock import utc_now
 from db.models import DeliveryStatus
 
 from alerts_fixtures import NODES, alerting, deliveries, fast_policy, outbox_db, put_state_events, sink_worker, stop  # noqa: F401
+from alerts_fixtures import dead_receiver, put_events, sensor_fault_pair
 from alerts_receivers import GONE, HANG, HttpReceiver, fail
 from process_harness import wait_until
 
@@ -137,3 +138,25 @@ def test_410_gone_disables_the_sink_tells_the_other_sinks_and_survives_a_restart
     finally:
         gone.close()
         other.close()
+
+
+def test_a_sensor_fault_and_its_clearing_arrive_signed_with_the_receiver_and_a_pointer_back(outbox_db, stop):
+    receiver = HttpReceiver()
+    try:
+        settings = alerting(webhook_sink("hook", receiver.url))
+        raised, cleared = put_events(outbox_db, list(sensor_fault_pair(settings, "node-b", dead_receiver(3, "amplitude"))))
+        worker = sink_worker(settings, "hook", outbox_db, stop)
+        worker.run_once()
+        worker.run_once()
+        first, second = (Webhook(SECRET).verify(r.body, r.headers) for r in receiver.accepted())
+        assert [r.headers["webhook-id"] for r in receiver.accepted()] == [str(raised.id), str(cleared.id)]
+        assert first["type"] == "pipesentry.sensor_fault" and second["type"] == "pipesentry.sensor_fault_cleared"
+        data = first["data"]
+        assert data["node_id"] == "node-b" and data["severity"] == "warning" and data["measurement_id"] == 7
+        assert data["receiver"] == {"rx_index": 3, "rx_angle_deg": 67.5, "kind": "amplitude",
+                                    "amplitude_ratio": 0.03, "delay_s": 0.0}
+        assert data["faulty_receivers"] == [3] and data["links"]["measurement"].endswith("/api/v1/measurements/7")
+        assert second["data"]["raised_event_id"] == str(raised.id) and second["data"]["receiver"] == data["receiver"]
+        assert second["data"]["faulty_receivers"] == [] and second["data"]["routing_severity"] == "warning"
+    finally:
+        receiver.close()
