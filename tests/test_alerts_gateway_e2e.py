@@ -11,11 +11,21 @@ from standardwebhooks.webhooks import Webhook
 
 from alerts.config import AlertingSettings
 from db.database import open_database
-from db.models import DeliveryStatus, MeasurementRow, NodeRow
+from db.models import DeliveryStatus, DetectionRow, EventRow, MeasurementRow, NodeRow
 
 from alerts_fixtures import deliveries, put_state_events
 from alerts_receivers import HANG, HttpReceiver
-from process_harness import gateway_config, start_gateway, start_mock_nodes, wait_for_links, wait_until
+from process_harness import (
+    PYTHON,
+    Proc,
+    gateway_config,
+    gateway_node,
+    scenario_node,
+    start_gateway,
+    start_mock_nodes,
+    wait_for_links,
+    wait_until,
+)
 
 pytestmark = pytest.mark.timeout(150)
 SECRET = "whsec_" + base64.b64encode(b"g" * 32).decode()
@@ -106,6 +116,88 @@ def test_gateway_killed_mid_delivery_delivers_after_restart_while_a_down_sink_di
         assert all(d.attempts == 3 and "ConnectError" in d.last_error
                    for d, e in deliveries(database, "down") if str(e.id) in wanted)
         database.dispose()
+        assert gateways[1].terminate(timeout_s=10) == 0, gateways[1].stderr[-3000:]
+    finally:
+        for gateway in gateways:
+            gateway.close()
+        mock.close()
+        receiver.close()
+
+
+def faulty_detections(url: str, rx_index: int) -> tuple[int, int]:
+    """(detections stored, of which with ``rx_index`` among their sensor faults)."""
+    database = open_database(url, upgrade=False)
+    try:
+        with database.session() as session:
+            faults = session.scalars(select(DetectionRow.sensor_faults)).all()
+    finally:
+        database.dispose()
+    return len(faults), sum(any(f["rx_index"] == rx_index for f in (row or [])) for row in faults)
+
+
+def sensor_events(url: str) -> list[tuple[str, str]]:
+    database = open_database(url, upgrade=False)
+    try:
+        with database.session() as session:
+            rows = session.scalars(select(EventRow).where(EventRow.kind.like("sensor_fault%"))
+                                   .order_by(EventRow.created_at)).all()
+            return [(r.kind, str(r.id)) for r in rows]
+    finally:
+        database.dispose()
+
+
+@pytest.mark.timeout(300)
+def test_a_receiver_dying_in_a_real_gateway_is_told_to_the_webhook_once_across_a_restart_and_cleared(tmp_path: Path):
+    receiver = HttpReceiver()
+    links = tmp_path / "links"
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario_node("pipe-1", 11))
+    control = tmp_path / "dead-rx"  # while it exists, the mock node's receiver 3 keeps 2 % of its signal
+    mock = Proc([PYTHON, str(Path(__file__).with_name("mock_dead_receiver.py")), "--scenario", str(scenario),
+                 "--link-dir", str(links)], tmp_path, "mock", env={"PIPESENTRY_TEST_DEAD_RX_FILE": str(control)})
+    gateways = []
+
+    def kinds_received(kind: str) -> list[dict]:
+        return [r.json()["data"] for r in receiver.accepted() if r.json()["type"] == f"pipesentry.{kind}"]
+
+    try:
+        wait_for_links(links, ["pipe-1"], mock)
+        db_path = tmp_path / "gateway.db"
+        url = f"sqlite:///{db_path}"
+        config = tmp_path / "gateway.toml"
+        sink = (f"\n[alerting]\npoll_interval_s = 0.1\nsensor_fault_count = 2\n"
+                f"\n[[alerting.sinks]]\ntype = \"webhook\"\nname = \"hook\"\nurl = \"{receiver.url}\"\n"
+                f"secret = \"{SECRET}\"\ntimeout_s = 2.0\n")
+        config.write_text(gateway_config(db_path, [gateway_node("pipe-1", links)]) + sink)
+        gateways.append(start_gateway(config, tmp_path, name="gateway0"))
+        wait_until(lambda: faulty_detections(url, 3)[0] >= 2, 90, 0.2, what="two healthy monitor measurements")
+        assert faulty_detections(url, 3)[1] == 0 and sensor_events(url) == []
+
+        control.write_text("3")
+        raised = receiver.wait_for(lambda rs: any(r.status == 200 and r.json()["type"] == "pipesentry.sensor_fault"
+                                                  for r in rs), 90, "the sensor_fault at the webhook")
+        data = kinds_received("sensor_fault")[0]
+        assert data["node_id"] == "pipe-1" and data["receiver"]["rx_index"] == 3
+        assert data["receiver"]["kind"] == "no_signal" and data["faulty_receivers"] == [3]
+        for request in raised:
+            Webhook(SECRET).verify(request.body, request.headers)
+
+        gateways[0].kill()  # a crash while the receiver is still dead
+        total, faulty = faulty_detections(url, 3)
+        gateways.append(start_gateway(config, tmp_path, name="gateway1"))
+        wait_until(lambda: faulty_detections(url, 3)[1] >= faulty + 3, 90, 0.2,
+                   what="three more measurements with receiver 3 faulty after the restart")
+        assert [k for k, _ in sensor_events(url)] == ["sensor_fault"], "the restart raised it again"
+
+        control.unlink()
+        receiver.wait_for(lambda rs: any(r.status == 200 and r.json()["type"] == "pipesentry.sensor_fault_cleared"
+                                         for r in rs), 90, "the sensor_fault_cleared at the webhook")
+        cleared = kinds_received("sensor_fault_cleared")[0]
+        assert cleared["raised_event_id"] == data["event_id"] and cleared["receiver"] == data["receiver"]
+        # At-least-once: the kill may come between the receiver's 200 and its record, so the same
+        # event can arrive twice; receivers de-duplicate on its id. One fault, one id.
+        assert {d["event_id"] for d in kinds_received("sensor_fault")} == {data["event_id"]}
+        assert [k for k, _ in sensor_events(url)] == ["sensor_fault", "sensor_fault_cleared"]
         assert gateways[1].terminate(timeout_s=10) == 0, gateways[1].stderr[-3000:]
     finally:
         for gateway in gateways:
