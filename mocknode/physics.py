@@ -4,6 +4,7 @@ Pure functions of a NodeScenario, an elapsed time, a temperature and a numpy Gen
 arrival (direct, end reflections, defect scattering along every path) is computed in
 mocknode/paths.py; here they are rendered in the frequency domain (exact fractional delays,
 constant phase shifts, receiver-aperture filters), then noise, ADC and decimation are applied.
+Other guided modes (ring leakage, mode conversion at defects; opt-in) come from mocknode/modes.py.
 Model and assumptions: docs/simulator.md.
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from imaging.measurement import Measurement
+from mocknode.modes import mode_traces
 from mocknode.paths import Arrivals, direct_arrivals, scattered_arrivals
 from mocknode.scattering import MM_PER_M, ActiveDefect, defects_at, wavelength_mm
 from mocknode.scenario import NodeScenario
@@ -129,8 +131,12 @@ def simulate_volts(scn: NodeScenario, *, elapsed_s: float, temperature_c: float,
     velocity = velocity_m_s(scn, temperature_c)
     if not (math.isfinite(velocity) and velocity > 0):
         raise PhysicsError(f"temperature {temperature_c} degC gives a non-physical velocity {velocity} m/s")
-    arrivals = all_arrivals(scn, defects_at(scn, elapsed_s), velocity)
-    volts = render(scn, arrivals, velocity) * direct_gain_v(scn)
+    defects = defects_at(scn, elapsed_s)
+    waves = render(scn, arrivals=all_arrivals(scn, defects, velocity), velocity=velocity)
+    other_modes = mode_traces(scn, defects, velocity) if scn.modes.active else None
+    if other_modes is not None:
+        waves = waves + other_modes
+    volts = waves * direct_gain_v(scn)
     acq = scn.acquisition
     if include_noise and acq.noise_v_rms > 0:
         volts = volts + rng.standard_normal(volts.shape) * (acq.noise_v_rms / math.sqrt(acq.averaging))

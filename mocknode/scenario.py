@@ -207,6 +207,67 @@ class TemperatureSpec(_Strict):
     jitter_c: float = Field(0.0, ge=0, description="Gaussian standard deviation per measurement")
 
 
+def _valid_mode(name: str) -> str:
+    from mocknode.dispersion import DispersionError, parse_mode
+
+    try:
+        order_family = parse_mode(name)
+    except DispersionError as exc:
+        raise ValueError(str(exc)) from None
+    if order_family == (0, 2):
+        raise ValueError("T(0,1) is the main wave (direct arrival and defect scattering), not another mode")
+    return name.strip()
+
+
+class ModeLeak(_Strict):
+    """A guided mode other than T(0,1) that the Tx ring also launches (both ways) and the Rx ring senses.
+
+    ``amplitude`` is relative to T(0,1)'s, in the same wave units (before the transducers'
+    aperture filters, which apply with the mode's own wavenumber); it lumps the Tx ring's
+    excitation of the mode and the Rx transducers' sensitivity to it. The pattern round the
+    Rx ring is cos(n (theta - angle_deg)); for a ring-order mode F(N, m) seen by N evenly spaced
+    receivers that is the same at every receiver. Below its cut-off the mode is evanescent.
+    """
+
+    mode: str = Field(description="L(0,1), L(0,2) or F(n,m), m = 1 (A0-like), 2 (SH0-like), 3 (S0-like)")
+    amplitude: float = Field(ge=0, le=2.0)
+    phase_deg: float = 0.0
+    angle_deg: float = Field(0.0, ge=0.0, lt=360.0, description="orientation of the cos(n theta) pattern")
+
+    _mode_ok = field_validator("mode")(classmethod(lambda cls, v: _valid_mode(v)))
+
+
+class ModeConversion(_Strict):
+    """Every defect also scatters the incident T(0,1) into ``mode``, radiated both ways along the pipe.
+
+    Amplitude at the receivers (before apertures): ``ratio`` x the defect's ring-level T(0,1)
+    reflection |R_T| = strength * lambda / C, x cos(n (theta - theta_defect)); the phase is the
+    defect's back-scatter phase plus ``phase_deg``. ``ratio`` lumps the conversion and the
+    torsional receivers' partial sensitivity to the converted mode.
+    """
+
+    mode: str
+    ratio: float = Field(ge=0, le=5.0)
+    phase_deg: float = 0.0
+
+    _mode_ok = field_validator("mode")(classmethod(lambda cls, v: _valid_mode(v)))
+
+
+class ModesSpec(_Strict):
+    """Guided modes besides T(0,1): leaks from the rings and conversion at defects (default: none).
+
+    Dispersion: plate modes of the wall wound helically round the pipe (mocknode/dispersion.py).
+    """
+
+    leaks: list[ModeLeak] = Field(default_factory=list, max_length=32)
+    conversions: list[ModeConversion] = Field(default_factory=list, max_length=16)
+    poisson_ratio: float = Field(0.3, gt=0.0, lt=0.5, description="with the T(0,1) velocity, fixes c_L (paper: 0.3)")
+
+    @property
+    def active(self) -> bool:
+        return bool(self.leaks or self.conversions)
+
+
 class NodeScenario(_Strict):
     """Everything needed to simulate one node's acquisitions over elapsed time."""
 
@@ -219,6 +280,7 @@ class NodeScenario(_Strict):
     defects: list[DefectSpec] = Field(default_factory=list, max_length=32)
     temperature: TemperatureSpec = TemperatureSpec()
     faults: FaultSpec = FaultSpec()
+    modes: ModesSpec = ModesSpec()
 
     @model_validator(mode="after")
     def _geometry_fits(self) -> NodeScenario:
@@ -362,6 +424,9 @@ __all__ = [
     "ExcitationSpec",
     "GrowthSpec",
     "MassSize",
+    "ModeConversion",
+    "ModeLeak",
+    "ModesSpec",
     "NodeScenario",
     "NotchSize",
     "PipeSpec",
