@@ -6,9 +6,13 @@ and at 200 mm and 0/157.5/315 deg (16 transducers, 85 kHz); a 10 kg added mass a
 Conditions: clean (no receiver noise; the 10-bit ADC still quantises), and noisy (the node's
 default receiver noise) with the current record +3 degC warmer than the baseline, with and
 without compensation; two notches at once; a false-alarm campaign of defect-free records
-with noise and +-2 degC drift. Prints markdown tables (docs/accuracy.md holds a copy).
+with noise and +-2 degC drift. Then the same cases with the other guided modes switched on
+(ring leakage of L(0,1), L(0,2) and flexural modes at assumed levels for 8- and 16-transducer
+rings, and mode conversion at the defect), with and without a +3 degC change, and their own
+false-alarm campaign. Prints markdown tables (docs/accuracy.md holds a copy).
 
-    .venv/bin/python bench/bench_accuracy.py [--campaign 1000] [--skip-features]
+    .venv/bin/python bench/bench_accuracy.py [--campaign 1000] [--skip-features] [--modes-campaign 250]
+        [--only-modes]
 """
 from __future__ import annotations
 
@@ -33,6 +37,9 @@ from mocknode.scenario import (  # noqa: E402
     AcquisitionSpec,
     DefectSpec,
     ExcitationSpec,
+    ModeConversion,
+    ModeLeak,
+    ModesSpec,
     NodeScenario,
     PipeSpec,
     RingSpec,
@@ -59,7 +66,7 @@ PAPER_CASES = [
 TWO_NOTCHES = Case("two notches", "notch", ((150.0, 45.0), (300.0, 225.0)), 16, 85e3)
 
 
-def scenario(case: Case, ends: str, noise_v_rms: float) -> NodeScenario:
+def scenario(case: Case, ends: str, noise_v_rms: float, modes: ModesSpec | None = None) -> NodeScenario:
     return NodeScenario(
         node_id="bench",
         pipe=PipeSpec(ends=ends, wall_mm=WALL_MM),
@@ -67,7 +74,33 @@ def scenario(case: Case, ends: str, noise_v_rms: float) -> NodeScenario:
         excitation=ExcitationSpec(frequency_hz=case.frequency_hz),
         acquisition=AcquisitionSpec(noise_v_rms=noise_v_rms),
         defects=[DefectSpec(kind=case.kind, axial_mm=z, angle_deg=a) for z, a in case.positions],
+        modes=modes or ModesSpec(),
     )
+
+
+# Assumed leakage levels (amplitude at a receiver relative to the direct T(0,1) arrival; docs/accuracy.md,
+# "Other guided modes"). Axisymmetric L(0,1)/L(0,2) from the transducers' imperfect shear polarisation,
+# the ring-order flexural modes F(N,1)/F(N,2) that N discrete elements launch (F(16,2) is below its
+# 144 kHz cut-off and dies away; F(8,2), cut-off 72 kHz, propagates slowly), and low orders F(1,.)/F(2,.)
+# from element-to-element spread. The 8-transducer ring leaks more, as the paper reports.
+LEAKS = {
+    16: [ModeLeak(mode="L(0,1)", amplitude=0.02), ModeLeak(mode="L(0,2)", amplitude=0.01),
+         ModeLeak(mode="F(16,1)", amplitude=0.02), ModeLeak(mode="F(16,2)", amplitude=0.10),
+         ModeLeak(mode="F(1,2)", amplitude=0.01, angle_deg=40.0), ModeLeak(mode="F(1,1)", amplitude=0.01, angle_deg=130.0)],
+    8: [ModeLeak(mode="L(0,1)", amplitude=0.05), ModeLeak(mode="L(0,2)", amplitude=0.03),
+        ModeLeak(mode="F(8,1)", amplitude=0.05), ModeLeak(mode="F(8,2)", amplitude=0.10),
+        ModeLeak(mode="F(1,2)", amplitude=0.02, angle_deg=40.0), ModeLeak(mode="F(1,1)", amplitude=0.02, angle_deg=130.0),
+        ModeLeak(mode="F(2,1)", amplitude=0.01, angle_deg=75.0)],
+}
+# Mode conversion at the defect (ratio to the defect's ring-level T(0,1) reflection): into the A0-like
+# (L(0,1), F(n,1)) and S0-like (F(1,3)) families; the SH-family F(n,2) scattering is the 2-D SH field itself.
+CONVERSIONS = [ModeConversion(mode="F(1,1)", ratio=0.5), ModeConversion(mode="F(2,1)", ratio=0.3, phase_deg=60.0),
+               ModeConversion(mode="L(0,1)", ratio=0.2, phase_deg=-45.0), ModeConversion(mode="F(1,3)", ratio=0.3,
+                                                                                          phase_deg=90.0)]
+
+
+def leaky(case: Case, convert: bool) -> ModesSpec:
+    return ModesSpec(leaks=LEAKS[case.n_transducers], conversions=CONVERSIONS if convert else [])
 
 
 def record(scn: NodeScenario, temperature_c: float, rng: np.random.Generator) -> Measurement:
@@ -92,13 +125,17 @@ def settings_for(method: str, feature: str = "analytic", compensate: bool = True
 METHODS = {"paper": settings_for("paper"), "multipath": settings_for("multipath")}
 
 
-def run_condition(title: str, cases, ends_list, noise_v_rms: float, delta_c: float, methods: dict, seed: int):
+def run_condition(title: str, cases, ends_list, noise_v_rms: float, delta_c: float, methods: dict, seed: int,
+                  modes=None):
+    """``modes``: None (T(0,1) only) or a function Case -> ModesSpec applied to baseline and current alike."""
     rng = np.random.default_rng(seed)
     rows, errs = [], {name: [] for name in methods}
     times = {name: [] for name in methods}
     for ends in ends_list:
         for case in cases:
-            base_scn, cur_scn = scenario(replace(case, positions=()), ends, noise_v_rms), scenario(case, ends, noise_v_rms)
+            spec = modes(case) if modes is not None else None
+            base_scn = scenario(replace(case, positions=()), ends, noise_v_rms, spec)
+            cur_scn = scenario(case, ends, noise_v_rms, spec)
             baseline, current = record(base_scn, 20.0, rng), record(cur_scn, 20.0 + delta_c, rng)
             cells = []
             for name, settings in methods.items():
@@ -157,13 +194,67 @@ def campaign(n: int, seed: int) -> None:
         print(f"<!-- {ends}: {time.perf_counter() - start:.0f} s -->")
 
 
+def modes_campaign(n: int, seed: int, spread_c: float = 3.0) -> None:
+    """Defect-free leaky records (n per ring and end condition), noise, 20 +- ``spread_c`` degC, one 20 degC baseline."""
+    rng = np.random.default_rng(seed)
+    print(f"\n### False alarms with leakage: {n} defect-free records per row, noise, 20 +- {spread_c:g} degC, "
+          "one 20 degC baseline\n")
+    print("| ring | ends | threshold | false alarms | peak DI mean | peak DI max | mean + 3.09 sd (1e-3) |")
+    print("|---|---|---|---|---|---|---|")
+    settings = replace(METHODS["multipath"], max_defects=1)
+    for n_tx, case in ((16, PAPER_CASES[0]), (8, PAPER_CASES[6])):
+        for ends in ("reflecting", "absorbing"):
+            clean = replace(case, positions=())
+            scn = scenario(clean, ends, NOISE_V_RMS, leaky(clean, convert=False))
+            baseline = record(scn, 20.0, rng)
+            peaks = []
+            for _ in range(n):
+                current = record(scn, 20.0 + rng.uniform(-spread_c, spread_c), rng)
+                result = assess(current, [baseline], settings)
+                peaks.append(result.peak_di if result.valid_baseline else np.nan)
+            values = np.asarray(peaks)
+            thr = settings.effective_threshold
+            cal = calibrate_threshold(values[np.isfinite(values)], false_alarm_rate=1e-3)
+            print(f"| {n_tx} | {ends} | {thr:.3g} | {int(np.sum(values >= thr))} / {n} "
+                  f"({int(np.sum(~np.isfinite(values)))} abstained) | {np.nanmean(values):.3g} | "
+                  f"{np.nanmax(values):.3g} | {cal.threshold:.3g} |")
+
+
+def run_modes(campaign_n: int) -> None:
+    """The paper's cases with the other guided modes on (multipath, the default method, only)."""
+    ends = ("reflecting", "absorbing")
+    default = {"multipath": METHODS["multipath"]}
+    print("\n## Other guided modes (leakage at the 8/16-ring levels of LEAKS; conversion as CONVERSIONS)")
+    run_condition("Leakage, noise, same temperature", PAPER_CASES, ends, NOISE_V_RMS, 0.0, default, 6,
+                  modes=lambda c: leaky(c, convert=False))
+    run_condition("Leakage, noise, current +3 degC, with compensation", PAPER_CASES, ends, NOISE_V_RMS, 3.0, default,
+                  7, modes=lambda c: leaky(c, convert=False))
+    run_condition("Leakage and mode conversion, noise, same temperature", PAPER_CASES, ends, NOISE_V_RMS, 0.0,
+                  default, 8, modes=lambda c: leaky(c, convert=True))
+    run_condition("Leakage and mode conversion, noise, current +3 degC, with compensation", PAPER_CASES, ends,
+                  NOISE_V_RMS, 3.0, default, 9, modes=lambda c: leaky(c, convert=True))
+    run_condition("Leakage and mode conversion, noise, current -3 degC, with compensation", PAPER_CASES, ends,
+                  NOISE_V_RMS, -3.0, default, 10, modes=lambda c: leaky(c, convert=True))
+    run_condition("Two notches, leakage and mode conversion, noise, same temperature", [TWO_NOTCHES], ends,
+                  NOISE_V_RMS, 0.0, default, 11, modes=lambda c: leaky(c, convert=True))
+    if campaign_n > 0:
+        modes_campaign(campaign_n, 12)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=int, default=500, help="defect-free records per end condition (x2)")
     parser.add_argument("--skip-features", action="store_true", help="skip the feature comparison")
+    parser.add_argument("--modes-campaign", type=int, default=250,
+                        help="defect-free leaky records per ring and end condition (x4)")
+    parser.add_argument("--only-modes", action="store_true", help="run only the other-guided-modes section")
     args = parser.parse_args()
     ends = ("reflecting", "absorbing")
     start = time.perf_counter()
+    if args.only_modes:
+        run_modes(args.modes_campaign)
+        print(f"\n<!-- total {time.perf_counter() - start:.0f} s -->")
+        return
     run_condition("Clean (no receiver noise, same temperature)", PAPER_CASES, ends, 0.0, 0.0, METHODS, 1)
     run_condition("Noise, current +3 degC, with compensation (OBS + BSS)", PAPER_CASES, ends, NOISE_V_RMS, 3.0,
                   METHODS, 2)
@@ -176,6 +267,7 @@ def main() -> None:
         run_condition("Features compared (noise, same temperature)", PAPER_CASES, ends, NOISE_V_RMS, 0.0, features, 4)
     if args.campaign > 0:
         campaign(args.campaign, 5)
+    run_modes(args.modes_campaign)
     print(f"\n<!-- total {time.perf_counter() - start:.0f} s -->")
 
 
