@@ -1,19 +1,22 @@
 """The fleet as operators see it: each node's identity, health, state, baseline and latest verdict."""
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from db.models import BaselineRow, DetectionRow, NodeRow
-from db.nodes import get_node
+from db.nodes import decommission_node, get_node, list_nodes, recommission_node, update_node_details
 from service import schemas
 
+log = logging.getLogger("pipesentry.api")
 
-def node_views(session: Session) -> list[schemas.Node]:
-    """Every node, ordered by id (three queries, whatever the fleet size)."""
-    nodes = session.scalars(select(NodeRow).order_by(NodeRow.node_id)).all()
+
+def node_views(session: Session, *, include_decommissioned: bool = False) -> list[schemas.Node]:
+    """The nodes in service (or every node), ordered by id (three queries, whatever the fleet size)."""
+    nodes = list_nodes(session, include_decommissioned=include_decommissioned)
     baselines = {
         b.node_id: b for b in session.scalars(select(BaselineRow).where(BaselineRow.active.is_(True)))
     }
@@ -45,6 +48,18 @@ def _latest_detections(session: Session, nodes: Sequence[NodeRow]) -> list[Detec
 def _node_view(node: NodeRow, baseline: BaselineRow | None, detection: DetectionRow | None) -> schemas.Node:
     return schemas.Node(
         node_id=node.node_id,
+        details=schemas.NodeDetails(
+            label=node.label,
+            location=node.location,
+            notes=node.notes,
+            updated_at=node.details_updated_at,
+            updated_by=node.details_updated_by,
+        ),
+        decommissioned=None
+        if node.decommissioned_at is None
+        else schemas.Decommissioned(
+            at=node.decommissioned_at, by=node.decommissioned_by or "", reason=node.decommission_reason or ""
+        ),
         port_url=node.port_url,
         firmware=node.firmware,
         protocol_version=node.protocol_version,
@@ -59,3 +74,21 @@ def _node_view(node: NodeRow, baseline: BaselineRow | None, detection: Detection
         active_baseline=None if baseline is None else schemas.Baseline.model_validate(baseline),
         latest_detection=None if detection is None else schemas.Detection.model_validate(detection),
     )
+
+
+def update_details(session: Session, node_id: str, update: schemas.NodeDetailsUpdate, *, who: str) -> schemas.Node:
+    """Change the fields the request names (call in a write transaction)."""
+    update_node_details(session, node_id, update.model_dump(exclude_unset=True), who=who)
+    return node_view(session, node_id)
+
+
+def decommission(session: Session, node_id: str, reason: str, *, who: str) -> schemas.Node:
+    decommission_node(session, node_id, who=who, reason=reason)
+    log.warning("node %s decommissioned by %s: %s", node_id, who, reason)
+    return node_view(session, node_id)
+
+
+def recommission(session: Session, node_id: str, *, who: str) -> schemas.Node:
+    recommission_node(session, node_id)
+    log.warning("node %s recommissioned by %s", node_id, who)
+    return node_view(session, node_id)

@@ -10,14 +10,15 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 
 from db.errors import StorageError
-from db.models import DeliveryRow, DeliveryStatus, MeasurementRow, NodeRow, NodeState
+from db.models import DeliveryRow, DeliveryStatus, MeasurementRow, NodeState
+from db.nodes import list_nodes
 from service.database import DatabaseGate
 
 log = logging.getLogger("pipesentry.api")
 
 
 class FleetCollector(Collector):
-    """Per node: up, state, DI peak, threshold, last seen/measured, serial counters; deliveries by status."""
+    """Per node in service: up, state, DI peak, threshold, last seen/measured, serial counters; deliveries by status."""
 
     def __init__(self, gate: DatabaseGate) -> None:
         self.gate = gate
@@ -56,7 +57,8 @@ class FleetCollector(Collector):
         deliveries = GaugeMetricFamily("pipesentry_alert_deliveries", "alert deliveries by status", labels=["status"])
         dead = GaugeMetricFamily("pipesentry_alert_deliveries_dead", "alert deliveries given up on (dead letters)")
         with database.session() as session:
-            nodes = session.scalars(select(NodeRow).order_by(NodeRow.node_id)).all()
+            # A decommissioned node's series end: no "node down" alert for a node taken out of service.
+            nodes = list_nodes(session, include_decommissioned=False)
             last_measured = dict(
                 session.execute(
                     select(MeasurementRow.node_id, func.max(MeasurementRow.acquired_at)).group_by(MeasurementRow.node_id)

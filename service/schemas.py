@@ -6,7 +6,7 @@ from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from db.models import DeliveryStatus, MapSource, MeasurementKind, NodeState, Role, Severity
 
@@ -88,8 +88,28 @@ class Detection(_Out):
         return [] if value is None else value
 
 
+class NodeDetails(_Out):
+    """What people call the node and where it is (set by an admin); null until set."""
+
+    label: str | None = Field(description="a name people recognise, e.g. 'Line 3, east loop'")
+    location: str | None
+    notes: str | None
+    updated_at: datetime | None
+    updated_by: str | None = Field(description="the API key name of the admin who last changed them")
+
+
+class Decommissioned(_Out):
+    """Why the node is out of service: it is not polled and raises no outage alert; its history stays."""
+
+    at: datetime
+    by: str
+    reason: str
+
+
 class Node(_Out):
     node_id: str
+    details: NodeDetails
+    decommissioned: Decommissioned | None = Field(description="null while the node is in service")
     port_url: str
     firmware: str
     protocol_version: int
@@ -192,6 +212,28 @@ class BaselineCreate(BaseModel):
     measurement_id: int = Field(ge=1, le=2**62)
     reason: str = Field(min_length=1, max_length=2000, description="why (kept in the history)")
     activate: bool = Field(True, description="make it the node's active baseline now")
+
+
+class NodeDetailsUpdate(BaseModel):
+    """Only the fields present are changed; null clears one."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"minProperties": 1})
+
+    label: str | None = Field(None, min_length=1, max_length=128)
+    location: str | None = Field(None, min_length=1, max_length=256)
+    notes: str | None = Field(None, min_length=1, max_length=4000)
+
+    @model_validator(mode="after")
+    def _changes_something(self) -> NodeDetailsUpdate:
+        if not self.model_fields_set:
+            raise ValueError("name at least one of label, location, notes (null clears one)")
+        return self
+
+
+class NodeDecommission(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    reason: str = Field(min_length=1, max_length=2000, description="why (kept on the node)")
 
 
 class BaselineActivate(BaseModel):

@@ -1,6 +1,6 @@
 """Role boundaries: nothing is read or changed without a key, and each role gets exactly its share.
 
-viewer reads; operator also changes baselines and handles alerts; admin also manages keys.
+viewer reads; operator also changes baselines and handles alerts; admin also manages keys and nodes.
 Only /healthz, /readyz and the dashboard's static shell answer without a key.
 """
 from __future__ import annotations
@@ -19,6 +19,9 @@ pytestmark = pytest.mark.timeout(240)
 REQUIRED_ROLE = {
     ("get", "/api/v1/nodes"): "viewer",
     ("get", "/api/v1/nodes/{node_id}"): "viewer",
+    ("patch", "/api/v1/nodes/{node_id}"): "admin",
+    ("post", "/api/v1/nodes/{node_id}/decommission"): "admin",
+    ("post", "/api/v1/nodes/{node_id}/recommission"): "admin",
     ("get", "/api/v1/nodes/{node_id}/measurements"): "viewer",
     ("get", "/api/v1/nodes/{node_id}/detections"): "viewer",
     ("get", "/api/v1/nodes/{node_id}/detections/latest"): "viewer",
@@ -51,7 +54,11 @@ BODIES = {
     ("post", "/api/v1/nodes/{node_id}/baselines"): {"measurement_id": 999999, "reason": "auth test"},
     ("post", "/api/v1/nodes/{node_id}/baselines/{baseline_id}/activate"): {"reason": "auth test"},
     ("post", "/api/v1/keys"): {"name": "auth-test", "role": "viewer"},
+    ("patch", "/api/v1/nodes/{node_id}"): {"notes": "auth test"},
+    ("post", "/api/v1/nodes/{node_id}/decommission"): {"reason": "auth test"},
 }
+# Operations whose permitted call would take a fleet node out of service: aimed at no node (404).
+NO_SUCH_NODE = {("post", "/api/v1/nodes/{node_id}/decommission"), ("post", "/api/v1/nodes/{node_id}/recommission")}
 
 
 def concrete(path: str) -> str:
@@ -61,7 +68,10 @@ def concrete(path: str) -> str:
 
 
 def call(client, method: str, path: str):
-    return client.request(method.upper(), concrete(path), json=BODIES.get((method, path)))
+    url = concrete(path)
+    if (method, path) in NO_SUCH_NODE:
+        url = url.replace(DAMAGED_NODE, "no-such-node")
+    return client.request(method.upper(), url, json=BODIES.get((method, path)))
 
 
 def test_every_documented_operation_has_a_stated_role(api: Api):

@@ -336,6 +336,43 @@ def test_admin_creates_lists_and_revokes_keys_and_a_revoked_key_stops_working(ap
     assert_problem(admin.post("/api/v1/keys", json={"name": "x", "role": "root"}), 422, "validation-error")
 
 
+# ------------------------------------------------------------------ node administration (admin)
+
+def test_admin_labels_a_node_and_the_change_records_who_and_when(admin, viewer):
+    response = admin.patch(f"/api/v1/nodes/{QUIET_NODES[0]}", json={"label": "Line 3 east", "location": "rack 2"})
+    assert response.status_code == 200, response.text
+    details = viewer.get(f"/api/v1/nodes/{QUIET_NODES[0]}").json()["details"]
+    assert (details["label"], details["location"], details["notes"]) == ("Line 3 east", "rack 2", None)
+    assert details["updated_by"] == "test-admin" and details["updated_at"]
+    cleared = admin.patch(f"/api/v1/nodes/{QUIET_NODES[0]}", json={"location": None}).json()["details"]
+    assert (cleared["label"], cleared["location"]) == ("Line 3 east", None)
+    assert_problem(admin.patch(f"/api/v1/nodes/{QUIET_NODES[0]}", json={}), 422, "validation-error")
+    assert_problem(admin.patch(f"/api/v1/nodes/{QUIET_NODES[0]}", json={"state": "ok"}), 422, "validation-error")
+    assert_problem(admin.patch("/api/v1/nodes/no-such-node", json={"label": "x"}), 404, "not-found")
+
+
+def test_a_decommissioned_node_leaves_the_fleet_and_its_metrics_until_recommissioned(admin, viewer):
+    node = QUIET_NODES[1]
+    response = admin.post(f"/api/v1/nodes/{node}/decommission", json={"reason": "line removed"})
+    assert response.status_code == 200, response.text
+    assert response.json()["decommissioned"]["by"] == "test-admin"
+    assert response.json()["health"]["online"] is False
+    try:
+        assert node not in [n["node_id"] for n in viewer.get("/api/v1/nodes").json()]
+        everyone = viewer.get("/api/v1/nodes", params={"include_decommissioned": "true"}).json()
+        retired = next(n for n in everyone if n["node_id"] == node)
+        assert retired["decommissioned"]["reason"] == "line removed"
+        assert viewer.get(f"/api/v1/nodes/{node}/measurements").status_code == 200  # its history stays
+        assert f'node="{node}"' not in viewer.get("/metrics").text
+        again = admin.post(f"/api/v1/nodes/{node}/decommission", json={"reason": "twice"})
+        assert_problem(again, 409, "conflict")
+    finally:
+        back = admin.post(f"/api/v1/nodes/{node}/recommission")
+    assert back.status_code == 200 and back.json()["decommissioned"] is None
+    assert node in [n["node_id"] for n in viewer.get("/api/v1/nodes").json()]
+    assert_problem(admin.post(f"/api/v1/nodes/{node}/recommission"), 409, "conflict")
+
+
 # ------------------------------------------------------------------ health, metrics, errors
 
 def test_healthz_and_readyz_answer_without_a_key(api: Api):

@@ -93,3 +93,18 @@ def test_without_a_key_the_page_asks_for_one_and_then_loads(api: Api, page):
     page.click("#key-form button[type=submit]")
     page.locator(f'#fleet-table tr[data-node="{DAMAGED_NODE}"]').wait_for(timeout=WAIT_MS)
     assert page.locator("#key-form").is_hidden()
+
+
+def test_a_labelled_node_shows_its_label_and_a_decommissioned_one_is_gone(api: Api, page):
+    with api.client(api.keys.admin) as admin:
+        assert admin.patch(f"/api/v1/nodes/{QUIET_NODES[0]}", json={"label": "Line 3 east"}).status_code == 200
+        assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/decommission", json={"reason": "removed"}).status_code == 200
+        try:
+            page.goto(f"{api.base_url}/#key={api.keys.viewer}")
+            labelled = page.locator(f'#fleet-table tr[data-node="{QUIET_NODES[0]}"]')
+            labelled.wait_for(timeout=WAIT_MS)
+            assert f"Line 3 east ({QUIET_NODES[0]})" in labelled.inner_text()
+            assert page.locator(f'#fleet-table tr[data-node="{QUIET_NODES[1]}"]').count() == 0
+            assert page.locator(f'.node-card[data-node="{QUIET_NODES[1]}"]').count() == 0
+        finally:
+            assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/recommission").status_code == 200

@@ -5,7 +5,7 @@ from fastapi import APIRouter, Depends, Query, status
 
 from db.models import MeasurementKind, NodeState
 from service import baselines, fleet, history, schemas
-from service.deps import DatabaseDep, Operator, require_viewer
+from service.deps import Admin, DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
 from service.routes.parameters import DEFAULT_LIMIT, BaselineId, Cursor, End, Limit, NodeId, Start
 
@@ -13,16 +13,44 @@ router = APIRouter(prefix="/nodes", tags=["nodes"], dependencies=[Depends(requir
                    responses=problem_responses(401, 403, 503))
 
 
-@router.get("", summary="All nodes: identity, health, state, latest DI peak and threshold, baseline")
-def list_nodes(database: DatabaseDep) -> list[schemas.Node]:
+@router.get("", summary="The nodes in service: identity, health, state, latest DI peak and threshold, baseline")
+def list_nodes(
+    database: DatabaseDep,
+    include_decommissioned: bool = Query(False, description="also the nodes taken out of service"),
+) -> list[schemas.Node]:
     with database.session() as session:
-        return fleet.node_views(session)
+        return fleet.node_views(session, include_decommissioned=include_decommissioned)
 
 
 @router.get("/{node_id}", responses=problem_responses(404))
 def get_node_detail(node_id: NodeId, database: DatabaseDep) -> schemas.Node:
     with database.session() as session:
         return fleet.node_view(session, node_id)
+
+
+@router.patch("/{node_id}", responses=problem_responses(404, 413),
+              summary="Set the node's label, location or notes (admin)")
+def update_node_details(
+    node_id: NodeId, body: schemas.NodeDetailsUpdate, caller: Admin, database: DatabaseDep
+) -> schemas.Node:
+    with database.write() as session:
+        return fleet.update_details(session, node_id, body, who=caller.name)
+
+
+@router.post("/{node_id}/decommission", responses=problem_responses(404, 409, 413),
+             summary="Take the node out of service: not polled, no outage alerts, history kept (admin)")
+def decommission_node(
+    node_id: NodeId, body: schemas.NodeDecommission, caller: Admin, database: DatabaseDep
+) -> schemas.Node:
+    with database.write() as session:
+        return fleet.decommission(session, node_id, body.reason, who=caller.name)
+
+
+@router.post("/{node_id}/recommission", responses=problem_responses(404, 409),
+             summary="Put a decommissioned node back in service (admin)")
+def recommission_node(node_id: NodeId, caller: Admin, database: DatabaseDep) -> schemas.Node:
+    with database.write() as session:
+        return fleet.recommission(session, node_id, who=caller.name)
 
 
 @router.get("/{node_id}/measurements", responses=problem_responses(400, 404),

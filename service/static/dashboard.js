@@ -65,7 +65,7 @@ function showKeyForm(message) {
 
 function renderFleet(nodes) {
   const rows = nodes.map((n) => el("tr", { "data-node": n.node_id },
-    el("td", {}, n.node_id),
+    el("td", { title: n.details.location || "" }, n.details.label ? `${n.details.label} (${n.node_id})` : n.node_id),
     el("td", {}, stateBadge(n.state)),
     el("td", n.health.online ? {} : { class: "offline" }, n.health.online ? "yes" : "offline"),
     el("td", {}, when(n.health.last_seen_at)),
@@ -132,6 +132,7 @@ async function renderNode(node) {
   section.classList.toggle("damage", node.state === "damage");
   section.querySelector(".badge").replaceChildren(stateBadge(node.state));
   section.querySelector(".summary").textContent =
+    (node.details.label ? `${node.details.label}${node.details.location ? `, ${node.details.location}` : ""} · ` : "") +
     `${node.health.online ? "online" : "OFFLINE"} · last seen ${when(node.health.last_seen_at)} · ` +
     `DI peak ${fmt(node.latest_di_peak)} / threshold ${fmt(node.latest_threshold)}`;
   const b = node.active_baseline;
