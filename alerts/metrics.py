@@ -3,6 +3,8 @@
 For the API's ``/metrics``: ``registry.register(AlertDeliveryCollector(gate.get))``. The
 fleet-wide totals (``pipesentry_alert_deliveries{status}``) are the API's own; these add
 the per-sink view that ``docker/prometheus/alerts.yml`` alerts on.
+``SensorFaultCollector(gate.get)`` adds ``pipesentry_node_faulty_receivers{node}``: the
+receivers of each node with an open ``sensor_fault`` alert (0 for every other node).
 """
 from __future__ import annotations
 
@@ -14,15 +16,18 @@ from prometheus_client.registry import Collector
 
 from alerts.events import EventKind
 from alerts.outbox import delivery_counts, events_of_kind, oldest_pending_age_s
+from alerts.sensor_faults import open_sensor_faults_by_node
 from db.database import Database
 from db.errors import StorageError
 from db.models import DeliveryStatus
+from db.nodes import list_nodes
 
 log = logging.getLogger("pipesentry.alerts")
 
 SINK_DELIVERIES = "pipesentry_alert_sink_deliveries"
 SINK_OLDEST_PENDING_AGE = "pipesentry_alert_sink_oldest_pending_age_seconds"
 SINK_DISABLED = "pipesentry_alert_sink_disabled_timestamp_seconds"
+NODE_FAULTY_RECEIVERS = "pipesentry_node_faulty_receivers"
 
 
 class AlertDeliveryCollector(Collector):
@@ -55,3 +60,24 @@ class AlertDeliveryCollector(Collector):
         for sink, at in sorted(gone_at.items()):
             disabled.add_metric([sink], at)
         yield from (deliveries, oldest, disabled)
+
+
+class SensorFaultCollector(Collector):
+    """Receivers per node with an open sensor_fault alert (debounced as the alerts are)."""
+
+    def __init__(self, get_database: Callable[[], Database]) -> None:
+        self.get_database = get_database
+
+    def collect(self) -> Iterator[Metric]:
+        faulty = GaugeMetricFamily(NODE_FAULTY_RECEIVERS, "receivers of the node with an open sensor_fault alert "
+                                   "(left out of its DI map)", labels=["node"])
+        try:
+            with self.get_database().session() as session:
+                nodes = [n.node_id for n in list_nodes(session)]
+                open_faults = open_sensor_faults_by_node(session)
+        except StorageError as error:
+            log.warning("sensor fault metrics: database unavailable: %s", error)
+            return
+        for node_id in sorted(set(nodes) | set(open_faults)):
+            faulty.add_metric([node_id], float(len(open_faults.get(node_id, {}))))
+        yield faulty

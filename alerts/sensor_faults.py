@@ -119,20 +119,25 @@ def check_sensor_faults(
 
 def open_sensor_faults(session: Session, node_id: str) -> dict[int, OpenFault]:
     """Per receiver (rx_index), the node's sensor_fault event not yet followed by its clearing."""
-    rows = session.scalars(
-        select(EventRow)
-        .where(
-            EventRow.node_id == node_id,
-            EventRow.kind.in_([str(EventKind.SENSOR_FAULT), str(EventKind.SENSOR_FAULT_CLEARED)]),
-        )
-        .order_by(EventRow.created_at, EventRow.id)
-    ).all()
+    return open_sensor_faults_by_node(session, node_id).get(node_id, {})
+
+
+def open_sensor_faults_by_node(session: Session, node_id: str | None = None) -> dict[str, dict[int, OpenFault]]:
+    """The open sensor faults of every node (or of one): node -> rx_index -> its sensor_fault event."""
+    query = select(EventRow).where(
+        EventRow.kind.in_([str(EventKind.SENSOR_FAULT), str(EventKind.SENSOR_FAULT_CLEARED)])
+    )
+    if node_id is not None:
+        query = query.where(EventRow.node_id == node_id)
+    rows = session.scalars(query.order_by(EventRow.created_at, EventRow.id)).all()
     cleared = {str(r.payload.get("raised_event_id")) for r in rows if r.kind == EventKind.SENSOR_FAULT_CLEARED}
-    open_faults: dict[int, OpenFault] = {}
+    open_faults: dict[str, dict[int, OpenFault]] = {}
     for row in rows:
-        if row.kind == EventKind.SENSOR_FAULT and str(row.id) not in cleared:
+        if row.kind == EventKind.SENSOR_FAULT and str(row.id) not in cleared and row.node_id is not None:
             receiver = row.payload["receiver"]
-            open_faults[int(receiver["rx_index"])] = OpenFault(row.id, receiver, row.payload.get("measurement_id"))
+            open_faults.setdefault(row.node_id, {})[int(receiver["rx_index"])] = OpenFault(
+                row.id, receiver, row.payload.get("measurement_id")
+            )
     return open_faults
 
 

@@ -1,15 +1,18 @@
 """Sensor fault alerts: raised and cleared on transitions only, debounced, restart-proof, in the measurement's transaction."""
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from prometheus_client import CollectorRegistry, generate_latest
 from pydantic import ValidationError
 from sqlalchemy import func, select
 
 from alerts.config import AlertingSettings
 from alerts.events import EventKind
+from alerts.metrics import SensorFaultCollector
 from alerts.sensor_faults import ReceiverTransitions, check_sensor_faults, open_sensor_faults, receiver_transitions
 from db.database import Database, open_database
 from db.models import DeliveryRow, EventRow, MeasurementRow, NodeState
@@ -175,3 +178,24 @@ def test_the_debounce_count_comes_from_the_alerting_settings(gateway):
     dead = dead_receiver(0)
     assert [gateway.measure(dead) for _ in range(3)] == [[], [], [(EventKind.SENSOR_FAULT, 0)]]
     assert gateway.events()[0].payload["consecutive_measurements"] == 3
+
+
+def test_the_faulty_receivers_gauge_counts_open_alerts_per_node(gateway):
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(SensorFaultCollector(lambda: gateway.database))
+    with gateway.database.write() as session:
+        store_sample(session, "node-b", seed=99)
+
+    def gauge() -> dict[str, float]:
+        text = generate_latest(registry).decode()
+        return {m[0]: float(m[1]) for m in re.findall(r'^pipesentry_node_faulty_receivers\{node="([^"]+)"\} (\S+)$', text, re.M)}
+
+    gateway.measure()
+    assert gauge() == {"node-a": 0.0, "node-b": 0.0}
+    gateway.measure(dead_receiver(1), dead_receiver(2))
+    assert gauge() == {"node-a": 0.0, "node-b": 0.0}, "not before the alert is raised"
+    gateway.measure(dead_receiver(1), dead_receiver(2))
+    assert gauge() == {"node-a": 2.0, "node-b": 0.0}
+    gateway.measure(dead_receiver(2))
+    gateway.measure(dead_receiver(2))
+    assert gauge() == {"node-a": 1.0, "node-b": 0.0}
