@@ -10,6 +10,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from db.models import DeliveryStatus, MapSource, MeasurementKind, NodeState, Role, Severity
 
+# Ids up to 2**53 - 1: every JSON reader (JavaScript numbers, float-parsing clients) holds them
+# exactly; with 2**62 a client's rounded 4.6e18 could land just past the bound.
+MAX_ID = 2**53 - 1
+
 
 class _Out(BaseModel):
     model_config = ConfigDict(from_attributes=True)
@@ -209,7 +213,7 @@ class DiMap(DiMapSummary):
 class BaselineCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    measurement_id: int = Field(ge=1, le=2**62)
+    measurement_id: int = Field(ge=1, le=MAX_ID)
     reason: str = Field(min_length=1, max_length=2000, description="why (kept in the history)")
     activate: bool = Field(True, description="make it the node's active baseline now")
 

@@ -9,11 +9,12 @@ from db.api_keys import create_api_key, list_api_keys, revoke_api_key
 from service import schemas
 from service.deps import Admin, DatabaseDep, VerifiedKeys, require_admin, verified_keys
 from service.problems import problem_responses
+from service.routes.parameters import MAX_ID
 
 router = APIRouter(prefix="/keys", tags=["keys"], dependencies=[Depends(require_admin)],
                    responses=problem_responses(401, 403, 503))
 
-KeyId = Annotated[int, Path(ge=1, le=2**62)]
+KeyId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
 @router.get("")

@@ -7,6 +7,7 @@ from fastapi import Path, Query
 from pydantic import AwareDatetime
 
 from db.pagination import MAX_PAGE_SIZE
+from service.schemas import MAX_ID
 
 DEFAULT_LIMIT = 50
 
@@ -17,5 +18,5 @@ Start = Annotated[
 ]
 End = Annotated[AwareDatetime | None, Query(description="only before this instant (exclusive)")]
 NodeId = Annotated[str, Path(min_length=1, max_length=64, description="the node's id")]
-MeasurementId = Annotated[int, Path(ge=1, le=2**62, description="the measurement's id")]
-BaselineId = Annotated[int, Path(ge=1, le=2**62, description="the baseline record's id")]
+MeasurementId = Annotated[int, Path(ge=1, le=MAX_ID, description="the measurement's id")]
+BaselineId = Annotated[int, Path(ge=1, le=MAX_ID, description="the baseline record's id")]
