@@ -150,6 +150,7 @@ def find_defects(
     rx_mask: np.ndarray | None = None,
     circumference_mm: float | None = None,
     exclusion_mm: float = DEFAULT_EXCLUSION_MM,
+    project: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[DIMap, list[Found], Estimate]:
     """(the first map, the defects whose peak DI reaches ``threshold``, strongest first, at most
     ``max_defects``; the first map's peak, refined on the fine grid).
@@ -157,7 +158,8 @@ def find_defects(
     Maps are computed on ``grid`` (coarse); every peak is then refined by ``fine_peak``. The
     first map's peak is ``Found`` position 0 when it crosses the threshold; the loop runs at
     most ``max_defects`` times and stops at the first peak below the threshold, so a record
-    without a defect costs one map.
+    without a defect costs one map. ``project``: the filter the residual has been through
+    (e.g. imaging/modal.py); fitted echoes are put through it too before they are subtracted.
     """
     if max_defects < 1:
         raise MultiDefectError(f"max_defects must be at least 1, got {max_defects}")
@@ -214,6 +216,8 @@ def find_defects(
         found.append(Found(estimate, di_map, severity, runner_up))
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
         fits = fit_echoes(original, reference, model, positions, rx_mask=rx_mask)
+        if project is not None:
+            fits = [project(f) for f in fits]
         residual = original - sum(fits)
     assert first is not None and first_peak is not None
     if len(found) > 1:

@@ -30,6 +30,7 @@ from imaging.grid import Grid
 from imaging.health import SensorFault, check_receivers, healthy_mask
 from imaging.localize import Confidence, Estimate, locate_peak, peak_confidence
 from imaging.measurement import Measurement
+from imaging.modal import default_modal_orders, remove_low_orders
 from imaging.multidefect import find_defects
 from imaging.multipath import path_model_for
 
@@ -57,6 +58,7 @@ class AssessSettings:
     wall_mm: float | None = None
     model_ends: bool = True
     check_health: bool = True
+    modal_orders: int | Literal["auto", "off"] = "off"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -71,6 +73,17 @@ class AssessSettings:
             raise SettingsError("max_stretch must be in [0, 0.1)")
         if not self.max_residual > 0:
             raise SettingsError("max_residual must be positive")
+        if self.modal_orders not in ("auto", "off") and not (isinstance(self.modal_orders, int)
+                                                             and 0 <= self.modal_orders <= 8):
+            raise SettingsError(f"modal_orders must be 'auto', 'off' or 0..8, got {self.modal_orders!r}")
+
+    def modal_orders_for(self, n_rx: int) -> int | None:
+        """Circumferential orders 0..n removed from the residual before imaging (None: none)."""
+        if self.modal_orders == "off":
+            return None
+        if self.modal_orders == "auto":
+            return default_modal_orders(n_rx)
+        return int(self.modal_orders)
 
     @property
     def effective_threshold(self) -> float:
@@ -183,10 +196,18 @@ def _multipath(match: BaselineMatch, entry: Measurement, current: Measurement, g
     # memoised (imaging/arrivals.py), so a node's baselines are analysed once, not per measurement.
     model = path_model_for(entry, wall_mm=settings.wall_mm, model_ends=settings.model_ends)
     residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
+    orders = settings.modal_orders_for(current.n_rx)
+    project = None
+    if orders is not None:
+        def project(x: np.ndarray) -> np.ndarray:
+            return remove_low_orders(x, current.rx_angles_deg, orders, mask)
+
+        residual = project(residual)
     first, found, first_peak = find_defects(
         residual, match.baseline, grid, model, feature=settings.feature,
         reference_amplitude_v=reference_amplitude(entry), threshold=threshold,
         max_defects=settings.max_defects, rx_mask=mask, circumference_mm=model.circumference_mm,
+        project=project,
     )
     peak = found[0].estimate if found else first_peak
     defects = [
