@@ -99,8 +99,10 @@ CONVERSIONS = [ModeConversion(mode="F(1,1)", ratio=0.5), ModeConversion(mode="F(
                                                                                           phase_deg=90.0)]
 
 
-def leaky(case: Case, convert: bool) -> ModesSpec:
-    return ModesSpec(leaks=LEAKS[case.n_transducers], conversions=CONVERSIONS if convert else [])
+def leaky(case: Case, convert: bool, conversion_scale: float = 1.0) -> ModesSpec:
+    conversions = [ModeConversion(mode=c.mode, ratio=c.ratio * conversion_scale, phase_deg=c.phase_deg)
+                   for c in CONVERSIONS] if convert else []
+    return ModesSpec(leaks=LEAKS[case.n_transducers], conversions=conversions)
 
 
 def record(scn: NodeScenario, temperature_c: float, rng: np.random.Generator) -> Measurement:
@@ -237,8 +239,26 @@ def run_modes(campaign_n: int) -> None:
                   NOISE_V_RMS, -3.0, default, 10, modes=lambda c: leaky(c, convert=True))
     run_condition("Two notches, leakage and mode conversion, noise, same temperature", [TWO_NOTCHES], ends,
                   NOISE_V_RMS, 0.0, default, 11, modes=lambda c: leaky(c, convert=True))
+    for scale in (2.0, 4.0):
+        run_condition(f"Leakage and {scale:g}x stronger mode conversion, noise, current +3 degC, with compensation",
+                      PAPER_CASES, ends, NOISE_V_RMS, 3.0, default, 20, modes=lambda c, s=scale: leaky(c, True, s))
     if campaign_n > 0:
         modes_campaign(campaign_n, 12)
+
+
+def run_modal_filter() -> None:
+    """The opt-in modal filter (AssessSettings.modal_orders="auto") against the default, same records."""
+    ends = ("reflecting", "absorbing")
+    both = {"multipath": METHODS["multipath"], "multipath/modal": replace(METHODS["multipath"], modal_orders="auto")}
+    print("\n## Opt-in modal filter (orders 0..1 removed for 16 receivers, 0 for 8; imaging/modal.py)")
+    run_condition("Noise, current +3 degC, with compensation", PAPER_CASES, ends, NOISE_V_RMS, 3.0, both, 2)
+    run_condition("Noise, current +3 degC, without compensation", PAPER_CASES, ends, NOISE_V_RMS, 3.0,
+                  {n: replace(s, compensate=False) for n, s in both.items()}, 2)
+    run_condition("Two notches at once (noise, same temperature)", [TWO_NOTCHES], ends, NOISE_V_RMS, 0.0, both, 3)
+    run_condition("Leakage and mode conversion, noise, current +3 degC, with compensation", PAPER_CASES, ends,
+                  NOISE_V_RMS, 3.0, both, 9, modes=lambda c: leaky(c, convert=True))
+    run_condition("Leakage and 4x stronger mode conversion, noise, current +3 degC, with compensation",
+                  PAPER_CASES, ends, NOISE_V_RMS, 3.0, both, 20, modes=lambda c: leaky(c, True, 4.0))
 
 
 def main() -> None:
@@ -253,6 +273,7 @@ def main() -> None:
     start = time.perf_counter()
     if args.only_modes:
         run_modes(args.modes_campaign)
+        run_modal_filter()
         print(f"\n<!-- total {time.perf_counter() - start:.0f} s -->")
         return
     run_condition("Clean (no receiver noise, same temperature)", PAPER_CASES, ends, 0.0, 0.0, METHODS, 1)
@@ -268,6 +289,7 @@ def main() -> None:
     if args.campaign > 0:
         campaign(args.campaign, 5)
     run_modes(args.modes_campaign)
+    run_modal_filter()
     print(f"\n<!-- total {time.perf_counter() - start:.0f} s -->")
 
 
