@@ -187,6 +187,8 @@ class NodeWorker:
             if decommissioned:
                 log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
                 self._close()
+                with self.db.write() as session:  # a poll in flight when it was decommissioned marked it online
+                    record_node_health(session, self.settings.id, online=False)
             else:
                 log.info("node recommissioned (API); polling again")
         return decommissioned
