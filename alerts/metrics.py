@@ -4,7 +4,7 @@ For the API's ``/metrics``: ``registry.register(AlertDeliveryCollector(gate.get)
 fleet-wide totals (``pipesentry_alert_deliveries{status}``) are the API's own; these add
 the per-sink view that ``docker/prometheus/alerts.yml`` alerts on.
 ``SensorFaultCollector(gate.get)`` adds ``pipesentry_node_faulty_receivers{node}``: the
-receivers of each node with an open ``sensor_fault`` alert (0 for every other node).
+receivers of each node in service with an open ``sensor_fault`` alert (0 for every other node).
 """
 from __future__ import annotations
 
@@ -73,11 +73,11 @@ class SensorFaultCollector(Collector):
                                    "(left out of its DI map)", labels=["node"])
         try:
             with self.get_database().session() as session:
-                nodes = [n.node_id for n in list_nodes(session)]
+                nodes = [n.node_id for n in list_nodes(session, include_decommissioned=False)]
                 open_faults = open_sensor_faults_by_node(session)
         except StorageError as error:
             log.warning("sensor fault metrics: database unavailable: %s", error)
             return
-        for node_id in sorted(set(nodes) | set(open_faults)):
+        for node_id in nodes:  # the nodes in service, as the fleet's metrics
             faulty.add_metric([node_id], float(len(open_faults.get(node_id, {}))))
         yield faulty

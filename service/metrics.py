@@ -9,6 +9,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 
+from alerts.metrics import AlertDeliveryCollector, SensorFaultCollector
 from db.errors import StorageError
 from db.models import DeliveryRow, DeliveryStatus, MeasurementRow, NodeState
 from db.nodes import list_nodes
@@ -89,8 +90,12 @@ class FleetCollector(Collector):
 
 
 def metrics_registry(gate: DatabaseGate) -> CollectorRegistry:
+    """The fleet's metrics, and alerting's: deliveries per sink (docker/prometheus/alerts.yml alerts on
+    them) and each node's faulty receivers."""
     registry = CollectorRegistry(auto_describe=False)
     registry.register(FleetCollector(gate))
+    registry.register(AlertDeliveryCollector(gate.get))
+    registry.register(SensorFaultCollector(gate.get))
     return registry
 
 

@@ -398,6 +398,19 @@ def test_metrics_expose_per_node_state_di_and_link_counters(viewer):
     assert "pipesentry_database_up 1.0" in text
 
 
+def test_metrics_carry_alertings_series_that_the_prometheus_rules_use(viewer):
+    import re
+    from pathlib import Path
+
+    text = viewer.get("/metrics").text
+    rules = (Path(__file__).resolve().parents[1] / "docker" / "prometheus" / "alerts.yml").read_text()
+    used = set(re.findall(r"\b(pipesentry_[a-z_]+)", rules))
+    declared = set(re.findall(r"^# TYPE (pipesentry_[a-z_]+) ", text, re.M))
+    assert used and used <= declared, f"rules use series /metrics does not declare: {sorted(used - declared)}"
+    for node in ALL_NODES:
+        assert f'pipesentry_node_faulty_receivers{{node="{node}"}} 0.0' in text
+
+
 def test_unknown_route_and_wrong_method_are_problems(viewer):
     assert_problem(viewer.get("/api/v1/pipes"), 404, "not-found")
     assert_problem(viewer.delete("/api/v1/nodes"), 405, "method-not-allowed")
