@@ -30,7 +30,7 @@ def list_nodes(session: Session, *, include_decommissioned: bool = True) -> Sequ
     return session.scalars(statement).all()
 
 
-# Fields an admin may set with update_node_details, and "leave as is".
+# The fields update_node_details may set (an admin, through the API); any other is refused.
 NODE_DETAILS = ("label", "location", "notes")
 
 
