@@ -107,6 +107,7 @@ def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float 
         compensate=im.compensate,
         threshold=threshold,
         max_defects=im.max_defects,
+        modal_orders=im.modal_orders,
         wall_mm=wall_mm,
         **extra,
     )

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
@@ -73,6 +73,11 @@ class ImagingSettings(_Section):
         None, gt=0, description="abstain above this relative residual after compensation (None: the default)"
     )
     max_defects: int = Field(3, ge=1, le=16)
+    modal_orders: Literal["auto", "off"] | Annotated[int, Field(ge=0, le=8)] = Field(
+        "off",
+        description="remove the lowest circumferential orders across the ring before imaging (imaging/modal.py): "
+        "'auto' (0-1 for 16 receivers, 0 for 8), 0..8, or 'off'; for rings that leak other modes strongly",
+    )
     library_size: int = Field(24, ge=1, le=256, description="baselines kept in the node's OBS library")
     library_temperature_step_c: float = Field(
         2.0, ge=0, description="a healthy measurement this far (degC) from every library baseline joins it; 0: off"

@@ -60,10 +60,22 @@ def test_environment_overrides_the_file(tmp_path, monkeypatch):
     assert s.database.url == "sqlite:////elsewhere.db" and s.logging.level == "DEBUG"
 
 
+def test_the_modal_filter_is_off_unless_a_node_asks_for_it(tmp_path):
+    from gateway.assessment import assess_settings
+    from imaging.modal import default_modal_orders
+
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db") + '[nodes.imaging]\nmodal_orders = "auto"\n')
+    plain, filtered = load_settings(path).nodes
+    assert assess_settings(plain, 0.02, 4.0).modal_orders_for(16) is None
+    assert assess_settings(filtered, 0.02, 4.0).modal_orders_for(16) == default_modal_orders(16)
+
+
 @pytest.mark.parametrize(
     "body, key",
     [
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\ninterval_s = -1\n', "nodes.0.interval_s"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[nodes.imaging]\nmodal_orders = 9\n', "nodes.0.imaging.modal_orders"),
         ('[[nodes]]\nid = "a b"\nurl = "/dev/x"\n', "nodes.0.id"),
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\nbaudrate = 9600\n', "nodes.0.baudrate"),
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[nodes.threshold]\nmode = "absolute"\n', "nodes.0.threshold"),
