@@ -10,7 +10,8 @@ resumes the re-sends. The event id travels as the ``event_id`` annotation.
 Alerts per node: ``PipeSentryPipeDamage`` (state suspected: severity warning; damage:
 critical), ``PipeSentryMonitoringBlind`` (no_valid_baseline) and ``PipeSentryNodeOffline``;
 per receiver of a node: ``PipeSentrySensorFault`` (sensor_fault fires it, its
-sensor_fault_cleared ends it with the same labels). Other events (baseline changes, ...) are
+sensor_fault_cleared ends it with the same labels). A node an admin decommissioned has its
+alerts no longer re-sent: Alertmanager ends them when their ``endsAt`` passes. Other events (baseline changes, ...) are
 not alerts here and are acknowledged without a request.
 """
 from __future__ import annotations
@@ -38,6 +39,7 @@ from alerts.outbox import OutboxEvent, delivered_events, latest_delivered
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
+from db.nodes import decommissioned_node_ids
 
 log = logging.getLogger("pipesentry.alerts")
 
@@ -190,8 +192,11 @@ class AlertmanagerTransport:
                 session, self.settings.name, OUTAGE_KINDS
             )
             latest += open_sensor_faults(delivered_events(session, self.settings.name, SENSOR_FAULT_KINDS))
+            retired = decommissioned_node_ids(session)
         alerts = []
         for item in latest:
+            if item.node_id in retired:
+                continue  # decommissioned by an admin: not re-sent, so Alertmanager ends it at its endsAt
             alerts += postable_alerts(item, now=now, resend_interval_s=self.settings.resend_interval_s, firing_only=True)
         return alerts
 

@@ -81,6 +81,11 @@ def recommission_node(session: Session, node_id: str) -> NodeRow:
     return node
 
 
+def decommissioned_node_ids(session: Session) -> set[str]:
+    """The nodes an admin has taken out of service."""
+    return set(session.scalars(select(NodeRow.node_id).where(NodeRow.decommissioned_at.is_not(None))))
+
+
 def is_decommissioned(session: Session, node_id: str) -> bool:
     """True for a known node an admin has decommissioned (an unknown node is not)."""
     decommissioned_at = session.scalar(select(NodeRow.decommissioned_at).where(NodeRow.node_id == node_id))

@@ -113,6 +113,31 @@ def test_active_alerts_are_re_sent_and_stop_being_re_sent_once_cleared(outbox_db
         am.close()
 
 
+def test_a_decommissioned_nodes_alerts_are_no_longer_re_sent_until_it_is_back_in_service(outbox_db, stop):
+    from db.nodes import decommission_node, recommission_node
+
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        clock = Monotonic()
+        worker = worker_with_clock(settings, outbox_db, stop, clock)
+        put_state_events(outbox_db, settings, node_ids=("node-a", "node-b"), cycle=[("ok", "damage")])
+        worker.run_once()
+        with outbox_db.write() as session:
+            decommission_node(session, "node-b", who="admin:ops", reason="line removed")
+        clock.now_s += 3600
+        worker.run_once()
+        assert [a["labels"]["node"] for a in am.requests[-1].json()] == ["node-a"]
+        with outbox_db.write() as session:
+            recommission_node(session, "node-b")
+        clock.now_s += 3600
+        worker.run_once()
+        assert sorted(a["labels"]["node"] for a in am.requests[-1].json()) == ["node-a", "node-b"]
+        assert am.invalid == []
+    finally:
+        am.close()
+
+
 def test_node_offline_fires_and_node_online_ends_the_offline_alert(outbox_db, stop):
     am = alertmanager_receiver()
     try:
