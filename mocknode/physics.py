@@ -136,11 +136,28 @@ def simulate_volts(scn: NodeScenario, *, elapsed_s: float, temperature_c: float,
     other_modes = mode_traces(scn, defects, velocity) if scn.modes.active else None
     if other_modes is not None:
         waves = waves + other_modes
-    volts = waves * direct_gain_v(scn)
+    volts = apply_receiver_faults(waves * direct_gain_v(scn), scn, elapsed_s)
     acq = scn.acquisition
     if include_noise and acq.noise_v_rms > 0:
         volts = volts + rng.standard_normal(volts.shape) * (acq.noise_v_rms / math.sqrt(acq.averaging))
     return volts
+
+
+def apply_receiver_faults(volts: np.ndarray, scn: NodeScenario, elapsed_s: float) -> np.ndarray:
+    """The noise-free receiver signals with the scenario's receiver faults active at ``elapsed_s``:
+    each faulty row delayed by ``delay_s`` (linear interpolation, zero before the record) and scaled
+    by ``gain``. Returns ``volts`` itself when no fault is active."""
+    active = [f for f in scn.receiver_faults if f.active_at(elapsed_s)]
+    if not active:
+        return volts
+    out = volts.copy()
+    t = np.arange(volts.shape[1]) / scn.acquisition.fs_hz
+    for fault in active:
+        row = out[fault.rx_index]
+        if fault.delay_s:
+            row = np.interp(t - fault.delay_s, t, row, left=0.0, right=0.0)
+        out[fault.rx_index] = row * fault.gain
+    return out
 
 
 def quantise_volts(volts: np.ndarray, adc_bits: int, full_scale_v: float) -> tuple[np.ndarray, float]:
@@ -227,6 +244,7 @@ __all__ = [
     "ActiveDefect",
     "PhysicsError",
     "acquire",
+    "apply_receiver_faults",
     "decimate_codes",
     "defects_at",
     "hann_pulse",

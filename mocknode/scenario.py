@@ -268,6 +268,20 @@ class ModesSpec(_Strict):
         return bool(self.leaks or self.conversions)
 
 
+class ReceiverFaultSpec(_Strict):
+    """A receiver transducer that fails for a while: debonded or cable cut (gain near 0), degraded
+    coupling (gain < 1), or moved / a longer cable (delay). Its electronic noise stays."""
+
+    rx_index: int = Field(ge=0, description="row of the traces (receiver k sits at rx_angles_deg[k])")
+    gain: float = Field(0.0, ge=0.0, le=10.0, description="signal kept: 0 dead, 0.3 badly coupled, 1 healthy")
+    delay_s: float = Field(0.0, ge=-1e-4, le=1e-4, description="extra arrival delay of this channel")
+    from_s: float = Field(0.0, ge=0.0, description="elapsed scenario time at which the fault starts")
+    until_s: float | None = Field(None, gt=0.0, description="when it ends (None: never)")
+
+    def active_at(self, elapsed_s: float) -> bool:
+        return self.from_s <= elapsed_s and (self.until_s is None or elapsed_s < self.until_s)
+
+
 class NodeScenario(_Strict):
     """Everything needed to simulate one node's acquisitions over elapsed time."""
 
@@ -281,6 +295,7 @@ class NodeScenario(_Strict):
     temperature: TemperatureSpec = TemperatureSpec()
     faults: FaultSpec = FaultSpec()
     modes: ModesSpec = ModesSpec()
+    receiver_faults: list[ReceiverFaultSpec] = Field(default_factory=list, max_length=64)
 
     @model_validator(mode="after")
     def _geometry_fits(self) -> NodeScenario:
@@ -298,6 +313,13 @@ class NodeScenario(_Strict):
                 raise ValueError(
                     f"defects[{i}].axial_mm={defect.axial_mm} lies outside the pipe ({near_end}..{far_end} mm)"
                 )
+        for i, fault in enumerate(self.receiver_faults):
+            if fault.rx_index >= rings.n_transducers:
+                raise ValueError(
+                    f"receiver_faults[{i}].rx_index={fault.rx_index}: the ring has {rings.n_transducers} receivers"
+                )
+            if fault.until_s is not None and fault.until_s <= fault.from_s:
+                raise ValueError(f"receiver_faults[{i}]: until_s must be after from_s")
         return self
 
 
