@@ -3,9 +3,9 @@
 ``python tests/mock_dead_receiver.py <mock-node options>`` with ``PIPESENTRY_TEST_DEAD_RX_FILE``
 naming a file: while it exists, the receivers listed in it (comma-separated rx indices) keep
 2 % of their signal, as a debonded transducer or a cut cable would; without it the node is
-healthy. The test creates and removes the file, so nothing depends on timing. The mock node
-has no such fault switch of its own (mocknode/faults.py), hence this wrapper around its
-acquisition.
+healthy. The test creates and removes the file, so nothing depends on timing. The scenario's
+own ``receiver_faults`` follow scenario time, which a test cannot line up with the gateway's
+measurements exactly; hence this wrapper around the acquisition.
 """
 from __future__ import annotations
 
