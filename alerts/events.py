@@ -77,13 +77,15 @@ def state_change_event(
     axial_mm: float | None = None,
     angle_deg: float | None = None,
     occurred_at: datetime | None = None,
+    reason: str | None = None,
 ) -> EventInput | None:
     """The alert for a node's state change, or None when the change is not one operators need.
 
     to suspected/damage: ``damage_raised`` (warning/critical); suspected/damage -> ok:
     ``damage_cleared``; -> no_valid_baseline: ``monitoring_blind`` (an open damage alert stays
     open: a blind node has not shown the pipe is sound); no_valid_baseline -> ok:
-    ``monitoring_restored``. Commissioning/calibrating transitions give None.
+    ``monitoring_restored``. Commissioning/calibrating transitions give None. ``reason``: why the
+    imaging abstained (the detection's ``abstain_reason``), carried by ``monitoring_blind``.
     """
     from_state, to_state = str(from_state), str(to_state)
     if from_state == to_state:
@@ -107,9 +109,10 @@ def state_change_event(
     location = _location(axial_mm, angle_deg)
     payload = _payload(
         settings, eid, kind, node_id, severity, routing, occurred_at,
-        summary=_state_summary(kind, node_id, from_state, to_state, detection, location),
+        summary=_state_summary(kind, node_id, from_state, to_state, detection, location, reason),
         state=to_state, previous_state=from_state, online=True, measurement_id=measurement_id,
         detection=detection, location=location,
+        extra={"reason": reason} if kind == EventKind.MONITORING_BLIND and reason else None,
     )
     return EventInput(kind=kind, severity=severity, payload=payload, sinks=settings.sink_names_for(routing), id=eid)
 
@@ -402,13 +405,14 @@ def fault_text(receiver: dict[str, Any] | None) -> str:
     return str(kind)
 
 
-def _state_summary(kind, node_id, from_state, to_state, detection, location) -> str:
+def _state_summary(kind, node_id, from_state, to_state, detection, location, reason=None) -> str:
     if kind == EventKind.DAMAGE_RAISED:
         return f"{to_state.upper()} on node {node_id}: {detection_text(detection)} at {location_text(location)}"
     if kind == EventKind.DAMAGE_CLEARED:
         return f"cleared on node {node_id}: {from_state} → ok, {detection_text(detection)}"
     if kind == EventKind.MONITORING_BLIND:
-        return f"node {node_id} cannot assess the pipe: no valid baseline for current conditions (was {from_state})"
+        why = reason or "no valid baseline for current conditions"
+        return f"node {node_id} cannot assess the pipe: {why} (was {from_state})"
     return f"node {node_id} monitoring again: no_valid_baseline → ok, {detection_text(detection)}"
 
 

@@ -105,6 +105,7 @@ def store_measurement(
                 sensor_faults=detection.sensor_faults,
                 baseline_measurement_id=detection.baseline_measurement_id,
                 stretch=detection.stretch,
+                abstain_reason=detection.abstain_reason,
                 created_at=now,
             )
         )

@@ -245,6 +245,7 @@ class DetectionRow(Base):
     sensor_faults: Mapped[list[Any] | None] = mapped_column(json_type())
     baseline_measurement_id: Mapped[int | None] = mapped_column(BigId, ForeignKey("measurements.id"))
     stretch: Mapped[float | None] = mapped_column(Float)  # baseline time-stretch factor used (BSS)
+    abstain_reason: Mapped[str | None] = mapped_column(Text)  # why no map was made (peak_di is null)
     created_at: Mapped[datetime]
 
 

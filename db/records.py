@@ -93,6 +93,7 @@ class DetectionInput:
     sensor_faults: list[dict[str, Any]] | None = None
     baseline_measurement_id: int | None = None
     stretch: float | None = None
+    abstain_reason: str | None = None  # why the imaging abstained (peak_di None)
 
 
 @dataclass(frozen=True)

@@ -108,6 +108,7 @@ def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float 
         threshold=threshold,
         max_defects=im.max_defects,
         modal_orders=im.modal_orders,
+        max_compensated_stretch=im.max_compensated_stretch,
         wall_mm=wall_mm,
         **extra,
     )
@@ -141,6 +142,7 @@ def detection_input(
         sensor_faults=[_json_safe(f.as_dict()) for f in result.sensor_faults],
         baseline_measurement_id=baseline_id,
         stretch=stretch,
+        abstain_reason=None if result.no_valid_baseline is None else result.no_valid_baseline.reason,
     )
 
 

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
 
 from alerts.config import AlertingSettings
+from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH
 
 
 class ConfigError(ValueError):
@@ -73,6 +74,13 @@ class ImagingSettings(_Section):
         None, gt=0, description="abstain above this relative residual after compensation (None: the default)"
     )
     max_defects: int = Field(3, ge=1, le=16)
+    max_compensated_stretch: float = Field(
+        DEFAULT_MAX_COMPENSATED_STRETCH,
+        gt=0,
+        le=0.005,
+        description="abstain (no_valid_baseline) when even the closest library baseline needs more time-stretch "
+        "than this (0.0015: about 15 degC in steel); the node then needs a baseline at that temperature",
+    )
     modal_orders: Literal["auto", "off"] | Annotated[int, Field(ge=0, le=8)] = Field(
         "off",
         description="remove the lowest circumferential orders across the ring before imaging (imaging/modal.py): "

@@ -408,6 +408,8 @@ class NodeWorker:
             except NodeClientError as exc:
                 # The gateway's own map is what flags damage; the node's map is for comparison.
                 log.warning("node DI map not read this cycle: %s: %s", type(exc).__name__, exc)
+        if result.no_valid_baseline is not None:
+            log.warning("no map: %s", result.no_valid_baseline.reason)
         for fault in result.sensor_faults:
             log.warning("sensor fault on receiver %d (%.1f deg): %s; left out of the map",
                         fault.rx_index, fault.rx_angle_deg, fault.kind)
@@ -455,6 +457,7 @@ class NodeWorker:
                     threshold=threshold,
                     axial_mm=detection.axial_mm,
                     angle_deg=detection.angle_deg,
+                    reason=detection.abstain_reason,
                 )
                 if event is not None:
                     add_event(session, event, node_id=self.settings.id)

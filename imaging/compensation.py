@@ -23,6 +23,12 @@ from imaging.measurement import Measurement
 
 DEFAULT_MAX_STRETCH = 0.005  # +-0.5 %: about +-50 degC of velocity change in steel
 DEFAULT_MAX_RESIDUAL = 0.05  # relative residual energy above which no baseline is trusted
+# A stretch undoes a uniform velocity change, not the unstretched excitation pulse nor what else
+# temperature changes, so the defect-free DI grows with |stretch| (mock physics, reflecting ends,
+# default noise: peak 0.0095 at 0.09 %, 0.0177 at 0.18 %, 0.026 at 0.28 %, against the default
+# threshold 0.02). Past this bound a record is not imaged but abstained on (assess()).
+DEFAULT_MAX_COMPENSATED_STRETCH = 0.0015  # 0.15 %: about 15 degC in steel
+STRETCH_PER_DEGC = 1.0e-4  # T(0,1) in steel: shear velocity -1e-4 per degC (the mock's model too)
 COARSE_STEPS = 21  # stretch grid of the first pass; a step of 0.05 % at +-0.5 %
 SEARCH_DECIMATION = 16  # the search compares every 16th sample (7 per period at 85 kHz, 10 MHz: see below)
 FINE_STEPS = 21  # second pass across the best coarse cell, per receiver

@@ -17,8 +17,10 @@ import numpy as np
 
 from imaging.arrivals import reference_amplitude
 from imaging.compensation import (
+    DEFAULT_MAX_COMPENSATED_STRETCH,
     DEFAULT_MAX_RESIDUAL,
     DEFAULT_MAX_STRETCH,
+    STRETCH_PER_DEGC,
     BaselineMatch,
     NoValidBaseline,
     select_baseline,
@@ -52,6 +54,7 @@ class AssessSettings:
     compensate: bool = True
     max_stretch: float = DEFAULT_MAX_STRETCH
     max_residual: float = DEFAULT_MAX_RESIDUAL
+    max_compensated_stretch: float = DEFAULT_MAX_COMPENSATED_STRETCH
     threshold: float | None = None
     max_defects: int = 3
     grid: Grid | None = None
@@ -73,6 +76,8 @@ class AssessSettings:
             raise SettingsError("max_stretch must be in [0, 0.1)")
         if not self.max_residual > 0:
             raise SettingsError("max_residual must be positive")
+        if not 0 < self.max_compensated_stretch < 0.1:
+            raise SettingsError("max_compensated_stretch must be in (0, 0.1)")
         if self.modal_orders not in ("auto", "off") and not (isinstance(self.modal_orders, int)
                                                              and 0 <= self.modal_orders <= 8):
             raise SettingsError(f"modal_orders must be 'auto', 'off' or 0..8, got {self.modal_orders!r}")
@@ -240,6 +245,8 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         baselines, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
         max_residual=settings.max_residual, rx_mask=mask,
     )
+    if isinstance(match, BaselineMatch) and abs(match.stretch) > settings.max_compensated_stretch:
+        match = _too_far_from_the_library(match, settings)
     if isinstance(match, NoValidBaseline):
         elapsed = (time.perf_counter() - start) * 1e3
         return Assessment(settings.method, settings.feature, threshold, None, None, [], None, match, faults, elapsed)
@@ -250,6 +257,20 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         di_map, peak, defects = _multipath(match, baselines[match.index], current, grid, mask, settings, threshold)
     elapsed = (time.perf_counter() - start) * 1e3
     return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed)
+
+
+def _too_far_from_the_library(match: BaselineMatch, settings: AssessSettings) -> NoValidBaseline:
+    """Abstain: even the best baseline needs more stretch than compensation keeps reliable, so a
+    map would show the temperature, not the pipe (a false alarm waiting to happen)."""
+    return NoValidBaseline(
+        match.index,
+        match.residual,
+        settings.max_residual,
+        f"the record is stretched {match.stretch:+.2%} against the closest baseline (about "
+        f"{abs(match.stretch) / STRETCH_PER_DEGC:.0f} degC in steel), beyond the "
+        f"{settings.max_compensated_stretch:.2%} compensation keeps reliable: set a baseline at this "
+        "temperature once the pipe is known sound",
+    )
 
 
 MULTIPATH_STEP_MM = 4.0  # the multipath map (search and storage); peaks are refined at 1 mm x 1 deg

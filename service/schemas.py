@@ -85,6 +85,8 @@ class Detection(_Out):
     sensor_faults: list[SensorFault] = Field(default_factory=list, description="receivers left out of the map")
     baseline_measurement_id: int | None = Field(None, description="the library baseline the map was made against")
     stretch: float | None = Field(None, description="time-stretch applied to that baseline (temperature compensation)")
+    abstain_reason: str | None = Field(None, description="why no map was made (peak_di is null), e.g. the record "
+                                       "is further in temperature from every baseline than compensation covers")
 
     @field_validator("defects", "sensor_faults", mode="before")
     @classmethod

@@ -85,6 +85,15 @@ def test_unknown_location_and_missing_threshold_read_plainly():
     assert "location unknown" in event.payload["summary"] and "no threshold yet" in event.payload["summary"]
 
 
+def test_going_blind_says_why_the_imaging_abstained():
+    why = "the record is stretched +0.23% against the closest baseline (about 23 degC in steel)"
+    event = damage(from_state="ok", to_state="no_valid_baseline", peak_di=None, reason=why)
+    assert event.kind == EventKind.MONITORING_BLIND and event.payload["reason"] == why
+    assert why in event.payload["summary"]
+    plain = damage(from_state="ok", to_state="no_valid_baseline", peak_di=None)
+    assert "reason" not in plain.payload and "no valid baseline" in plain.payload["summary"]
+
+
 def test_an_outage_has_one_offline_id_and_its_online_event_points_back():
     seen = T0 - timedelta(minutes=30)
     offline = node_offline_event(SETTINGS, node_id="n1", state="ok", last_seen_at=seen, now=T0)

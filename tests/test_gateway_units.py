@@ -71,10 +71,36 @@ def test_the_modal_filter_is_off_unless_a_node_asks_for_it(tmp_path):
     assert assess_settings(filtered, 0.02, 4.0).modal_orders_for(16) == default_modal_orders(16)
 
 
+def test_a_record_beyond_the_compensated_temperature_range_is_stored_as_an_abstention_with_its_reason(tmp_path):
+    import numpy as np
+
+    from gateway.assessment import assess_settings, detection_input, run_assessment
+    from mocknode.physics import acquire
+    from mocknode.scenario import TemperatureSpec
+
+    def record(temperature_c: float, seed: int):
+        scn = NodeScenario(node_id="a", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0))
+        return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
+
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db") + "[nodes.imaging]\nmax_compensated_stretch = 0.003\n")
+    strict, lenient = load_settings(path).nodes
+    warm, library = record(45.0, 2), [record(20.0, 1)]
+    abstained = detection_input(run_assessment(warm, library, assess_settings(strict, 0.02, 4.0)),
+                                NodeState.NO_VALID_BASELINE, 0.02, [7])
+    assert abstained.peak_di is None and "about 2" in abstained.abstain_reason
+    assert abstained.baseline_measurement_id is None
+    imaged = detection_input(run_assessment(warm, library, assess_settings(lenient, 0.02, 4.0)),
+                             NodeState.OK, 0.02, [7])
+    assert imaged.peak_di is not None and imaged.abstain_reason is None and imaged.baseline_measurement_id == 7
+
+
 @pytest.mark.parametrize(
     "body, key",
     [
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\ninterval_s = -1\n', "nodes.0.interval_s"),
+        ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[nodes.imaging]\nmax_compensated_stretch = 0.01\n',
+         "nodes.0.imaging.max_compensated_stretch"),
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\n[nodes.imaging]\nmodal_orders = 9\n', "nodes.0.imaging.modal_orders"),
         ('[[nodes]]\nid = "a b"\nurl = "/dev/x"\n', "nodes.0.id"),
         ('[[nodes]]\nid = "a"\nurl = "/dev/x"\nbaudrate = 9600\n', "nodes.0.baudrate"),

@@ -1,6 +1,7 @@
 """Temperature compensation: BSS recovers a known stretch, OBS picks the right baseline, and we abstain
 when no baseline matches."""
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -109,3 +110,39 @@ def test_obs_shortlist_searches_further_before_abstaining():
     far = replace(stretched(current, 4.5e-3), temperature_c=65.0)
     match = select_baseline(unrelated + [far], current, shortlist=1)
     assert isinstance(match, BaselineMatch) and match.index == 4
+
+
+def _steel_pipe_record(temperature_c: float, seed: int):
+    """The mock node's physics (reflecting ends, default noise) at a pipe temperature."""
+    from mocknode.physics import acquire
+    from mocknode.scenario import NodeScenario, TemperatureSpec
+
+    scn = NodeScenario(node_id="t", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0,
+                                                                jitter_c=0.0))
+    return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
+
+
+def test_a_record_far_warmer_than_every_baseline_is_abstained_on_not_imaged():
+    settings = AssessSettings(wall_mm=4.0)
+    result = assess(_steel_pipe_record(45.0, 2), [_steel_pipe_record(20.0, 1)], settings)
+    assert result.peak is None and result.di_map is None
+    reason = result.no_valid_baseline.reason
+    # 25 degC warmer: the waves are slower, the record longer (BSS finds +0.23 %, about 23 degC)
+    assert re.search(r"stretched \+0\.2\d% .* \(about 2\d degC in steel\)", reason), reason
+    assert "set a baseline at this temperature" in reason
+
+
+def test_a_baseline_near_the_records_temperature_brings_the_imaging_back_below_threshold():
+    settings = AssessSettings(wall_mm=4.0)
+    library = [_steel_pipe_record(20.0, 1), _steel_pipe_record(40.0, 3)]
+    result = assess(_steel_pipe_record(45.0, 2), library, settings)
+    assert result.no_valid_baseline is None and result.baseline.index == 1
+    assert result.peak.di < settings.effective_threshold / 2
+
+
+def test_within_the_compensated_range_a_warm_sound_pipe_stays_below_threshold():
+    settings = AssessSettings(wall_mm=4.0)
+    result = assess(_steel_pipe_record(32.0, 2), [_steel_pipe_record(20.0, 1)], settings)
+    assert result.no_valid_baseline is None
+    assert abs(result.baseline.stretch) < settings.max_compensated_stretch
+    assert result.peak.di < settings.effective_threshold
