@@ -25,7 +25,7 @@ DEFAULT_MAX_STRETCH = 0.005  # +-0.5 %: about +-50 degC of velocity change in st
 DEFAULT_MAX_RESIDUAL = 0.05  # relative residual energy above which no baseline is trusted
 # A stretch undoes a uniform velocity change, not the unstretched excitation pulse nor what else
 # temperature changes, so the defect-free DI grows with |stretch| (mock physics, reflecting ends,
-# default noise: peak 0.0095 at 0.09 %, 0.0177 at 0.18 %, 0.026 at 0.28 %, against the default
+# default noise: peak 0.0096 at 0.09 %, 0.0177 at 0.18 %, 0.026 at 0.28 %, against the default
 # threshold 0.02). Past this bound a record is not imaged but abstained on (assess()).
 DEFAULT_MAX_COMPENSATED_STRETCH = 0.0015  # 0.15 %: about 15 degC in steel
 STRETCH_PER_DEGC = 1.0e-4  # T(0,1) in steel: shear velocity -1e-4 per degC (the mock's model too)
