@@ -8,7 +8,7 @@ from db.baselines import baseline_history, set_active_baseline
 from db.clock import utc_now
 from db.errors import BaselineError, NotFound
 from db.measurements import get_measurement
-from db.models import BaselineRow
+from db.models import BaselineRow, MeasurementKind
 from db.nodes import get_node
 from service import schemas
 
@@ -21,8 +21,12 @@ def history(session: Session, node_id: str) -> list[schemas.Baseline]:
 def create(session: Session, node_id: str, request: schemas.BaselineCreate, *, who: str) -> schemas.Baseline:
     """A baseline record for a measurement of this node, made active unless ``activate`` is false.
 
-    Call in a write transaction. Raises ``BaselineError`` for another node's or a pruned
-    measurement, ``NotFound`` for an unknown node or measurement.
+    Inactive, the measurement joins the node's temperature library (its kind becomes
+    ``baseline``: the gateway compares records with it too, retention keeps it) while the
+    active baseline and the threshold stay as they are: how an operator teaches a node a
+    temperature it has not seen in its first weeks. Call in a write transaction. Raises
+    ``BaselineError`` for another node's or a pruned measurement, ``NotFound`` for an unknown
+    node or measurement.
     """
     if request.activate:
         row = set_active_baseline(session, node_id, request.measurement_id, created_by=who, reason=request.reason)
@@ -33,6 +37,7 @@ def create(session: Session, node_id: str, request: schemas.BaselineCreate, *, w
         raise BaselineError(f"measurement {measurement.id} belongs to node {measurement.node_id!r}, not {node_id!r}")
     if measurement.traces_pruned_at is not None:
         raise BaselineError(f"measurement {measurement.id} has no traces any more (pruned); it cannot be a baseline")
+    measurement.kind = MeasurementKind.BASELINE
     row = BaselineRow(
         node_id=node_id,
         measurement_id=measurement.id,

@@ -259,6 +259,10 @@ def test_inactive_baseline_candidate_does_not_change_the_active_one(operator, vi
                             json={"measurement_id": measurement_id, "reason": "candidate", "activate": False})
     assert created.status_code == 201 and created.json()["active"] is False
     assert viewer.get(f"/api/v1/nodes/{node}").json()["active_baseline"] == active
+    # ... but it joins the node's temperature library: its kind is baseline now
+    assert viewer.get(f"/api/v1/measurements/{measurement_id}").json()["kind"] == "baseline"
+    library = viewer.get(f"/api/v1/nodes/{node}/measurements", params={"kind": "baseline", "limit": 1000}).json()
+    assert measurement_id in [m["id"] for m in library["items"]]
 
 
 def test_baseline_from_another_nodes_measurement_is_refused(operator, viewer):

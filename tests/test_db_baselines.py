@@ -89,3 +89,21 @@ def test_a_monitor_measurement_may_be_promoted_to_baseline(any_db):
         set_active_baseline(session, "node-a", monitor, created_by="bob", reason="new normal after repair")
     with any_db.session() as session:
         assert active_baseline(session, "node-a").measurement_id == monitor
+
+
+def test_an_inactive_baseline_joins_the_library_the_gateway_compares_with(sqlite_db):
+    from gateway.assessment import BaselineLibrary
+    from service import baselines, schemas
+
+    with sqlite_db.write() as session:
+        commissioning = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=1)
+        set_active_baseline(session, "node-a", commissioning.id, created_by="gateway", reason="commissioning")
+        summer = store_sample(session, "node-a", seed=2)  # a monitor measurement on a hot day
+    with sqlite_db.session() as session:
+        assert BaselineLibrary(24).ids(session, "node-a") == [commissioning.id]
+    with sqlite_db.write() as session:
+        baselines.create(session, "node-a", schemas.BaselineCreate(measurement_id=summer.id, reason="35 degC, sound",
+                                                                   activate=False), who="operator:kim")
+    with sqlite_db.session() as session:
+        assert BaselineLibrary(24).ids(session, "node-a") == [commissioning.id, summer.id]
+        assert active_baseline(session, "node-a").measurement_id == commissioning.id
