@@ -30,6 +30,8 @@ class EventKind(StrEnum):
     NODE_OFFLINE = "node_offline"
     NODE_ONLINE = "node_online"
     BASELINE_CHANGED = "baseline_changed"
+    NODE_DECOMMISSIONED = "node_decommissioned"  # an admin took the node out of service (API)
+    NODE_RECOMMISSIONED = "node_recommissioned"  # ... and put it back
     SINK_DISABLED = "sink_disabled"  # a receiver answered 410 Gone
     SENSOR_FAULT = "sensor_fault"  # a receiver (transducer channel) of a node became faulty
     SENSOR_FAULT_CLEARED = "sensor_fault_cleared"  # that receiver is healthy again
@@ -194,6 +196,53 @@ def baseline_changed_event(
     )
     return EventInput(
         kind=EventKind.BASELINE_CHANGED, severity=Severity.INFO, payload=payload,
+        sinks=settings.sink_names_for(Severity.INFO), id=eid,
+    )
+
+
+def node_decommissioned_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    state: str,
+    decommissioned_at: datetime,
+    by: str,
+    reason: str,
+) -> EventInput:
+    """``node_decommissioned`` (info): the gateway no longer polls the node and raises no outage
+    alert for it. One decommissioning (one ``decommissioned_at``) gives one event id."""
+    eid = event_id(EventKind.NODE_DECOMMISSIONED, node_id, decommissioned_at.isoformat())
+    payload = _payload(
+        settings, eid, EventKind.NODE_DECOMMISSIONED, node_id, Severity.INFO, Severity.INFO, decommissioned_at,
+        summary=f"node {node_id} decommissioned by {by}: {reason} (not polled, no outage alerts)",
+        state=str(state), previous_state=str(state), online=False,
+        extra={"decommissioned": {"at": decommissioned_at.isoformat(), "by": by, "reason": reason}},
+    )
+    return EventInput(
+        kind=EventKind.NODE_DECOMMISSIONED, severity=Severity.INFO, payload=payload,
+        sinks=settings.sink_names_for(Severity.INFO), id=eid,
+    )
+
+
+def node_recommissioned_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    state: str,
+    decommissioned_at: datetime,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``node_recommissioned`` (info): the node decommissioned at ``decommissioned_at`` is polled again."""
+    occurred_at = occurred_at or utc_now()
+    eid = event_id(EventKind.NODE_RECOMMISSIONED, node_id, decommissioned_at.isoformat())
+    payload = _payload(
+        settings, eid, EventKind.NODE_RECOMMISSIONED, node_id, Severity.INFO, Severity.INFO, occurred_at,
+        summary=f"node {node_id} back in service (decommissioned since {decommissioned_at:%Y-%m-%d %H:%M} UTC)",
+        state=str(state), previous_state=str(state), online=False,
+        extra={"decommissioned": None, "decommissioned_since": decommissioned_at.isoformat()},
+    )
+    return EventInput(
+        kind=EventKind.NODE_RECOMMISSIONED, severity=Severity.INFO, payload=payload,
         sinks=settings.sink_names_for(Severity.INFO), id=eid,
     )
 

@@ -52,6 +52,8 @@ def mqtt_message(item: OutboxEvent) -> dict[str, Any]:
     keys = ("node_id", "state", "previous_state", "online", "severity", "occurred_at", "summary",
             "measurement_id", "detection", "location", "links")
     message = {"event_id": str(item.event_id), "kind": item.kind, **{k: payload.get(k) for k in keys}}
+    if item.kind == EventKind.NODE_DECOMMISSIONED:  # the retained state says so until it is recommissioned
+        message["decommissioned"] = payload.get("decommissioned")
     if item.kind in SENSOR_FAULT_KINDS:
         message.update(faulty=item.kind == EventKind.SENSOR_FAULT, receiver=payload.get("receiver"),
                        faulty_receivers=payload.get("faulty_receivers"))

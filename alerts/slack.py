@@ -23,6 +23,8 @@ ICONS = {
     "sink_disabled": ":warning:",
     "sensor_fault": ":warning:",
     "sensor_fault_cleared": ":white_check_mark:",
+    "node_decommissioned": ":no_entry_sign:",
+    "node_recommissioned": ":arrow_forward:",
 }
 
 

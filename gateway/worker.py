@@ -24,7 +24,8 @@ from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, 
 from db.nodes import get_node, is_decommissioned, record_node_health, upsert_node
 from db.records import DiMapInput, MapGrid, NodeInfo, StateChangeInput
 from alerts.config import AlertingSettings
-from alerts.events import state_change_event
+from alerts.events import node_decommissioned_event, node_recommissioned_event, state_change_event
+from alerts.outbox import add_event_once
 from alerts.sensor_faults import check_sensor_faults
 from gateway.config import NodeSettings
 from gateway.assessment import BaselineLibrary, assess_settings, detection_input, joins_library, run_assessment
@@ -111,6 +112,7 @@ class NodeWorker:
         self._flag_loaded = False
         self._n_baselines = 0
         self._out_of_service = False
+        self._decommissioned_at = None  # of the decommissioning this worker saw (for node_recommissioned)
         self.thread = threading.Thread(target=self.run, name=f"node-{settings.id}", daemon=True)
 
     @property
@@ -179,18 +181,38 @@ class NodeWorker:
 
     def _decommissioned(self) -> bool:
         """True while an admin has decommissioned this node (API): its port is released, nothing is
-        polled, and the check repeats every interval so that recommissioning resumes polling."""
+        polled, and the check repeats every interval so that recommissioning resumes polling.
+        Each change is told to the alert sinks (node_decommissioned / node_recommissioned)."""
         with self.db.session() as session:
             decommissioned = is_decommissioned(session, self.settings.id)
-        if decommissioned != self._out_of_service:
-            self._out_of_service = decommissioned
+        if decommissioned == self._out_of_service:
+            return decommissioned
+        self._out_of_service = decommissioned
+        if decommissioned:
+            log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
+            self._close()
+        with self.db.write() as session:
+            node = get_node(session, self.settings.id)
             if decommissioned:
-                log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
-                self._close()
-                with self.db.write() as session:  # a poll in flight when it was decommissioned marked it online
-                    record_node_health(session, self.settings.id, online=False)
+                node.online = False  # a poll in flight when it was decommissioned marked it online
+                self._decommissioned_at = node.decommissioned_at
+                event = node_decommissioned_event(
+                    self.alerting, node_id=node.node_id, state=node.state.value,
+                    decommissioned_at=node.decommissioned_at, by=node.decommissioned_by or "?",
+                    reason=node.decommission_reason or "",
+                )
+            elif self._decommissioned_at is not None:
+                event = node_recommissioned_event(
+                    self.alerting, node_id=node.node_id, state=node.state.value,
+                    decommissioned_at=self._decommissioned_at,
+                )
+                self._decommissioned_at = None
             else:
-                log.info("node recommissioned (API); polling again")
+                event = None
+            if event is not None:  # idempotent: a restart finds the same decommissioning, the same id
+                add_event_once(session, event, node_id=node.node_id)
+        if not decommissioned:
+            log.info("node recommissioned (API); polling again")
         return decommissioned
 
     def _drop_connection(self, why: str) -> None:

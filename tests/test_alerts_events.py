@@ -152,3 +152,28 @@ def test_a_sensor_fault_without_a_receiver_index_is_refused():
     with pytest.raises(ValueError, match="rx_index"):
         sensor_fault_event(SETTINGS, node_id="n1", fault={"kind": "no_signal"}, measurement_id=1, state="ok",
                            faulty_receivers=[], consecutive=2)
+
+
+def test_decommissioning_and_recommissioning_are_told_once_each_with_who_and_why():
+    from alerts.events import node_decommissioned_event, node_recommissioned_event
+    from alerts.mqtt import mqtt_message, mqtt_topic
+    from alerts.outbox import OutboxEvent
+    from alerts.slack import slack_text
+
+    at = T0 - timedelta(days=1)
+    gone = node_decommissioned_event(SETTINGS, node_id="node-7", state="damage", decommissioned_at=at,
+                                     by="admin:kim", reason="line 3 replaced")
+    again = node_decommissioned_event(SETTINGS, node_id="node-7", state="damage", decommissioned_at=at,
+                                      by="admin:kim", reason="line 3 replaced")
+    back = node_recommissioned_event(SETTINGS, node_id="node-7", state="damage", decommissioned_at=at, occurred_at=T0)
+    assert gone.id == again.id != back.id  # a restart that sees the same decommissioning adds nothing
+    assert gone.kind == EventKind.NODE_DECOMMISSIONED and gone.severity == Severity.INFO
+    assert gone.payload["decommissioned"] == {"at": at.isoformat(), "by": "admin:kim", "reason": "line 3 replaced"}
+    assert "admin:kim" in gone.payload["summary"] and "line 3 replaced" in gone.payload["summary"]
+    assert back.payload["decommissioned_since"] == at.isoformat() and "back in service" in back.payload["summary"]
+    item = OutboxEvent(1, "scada", 0, None, gone.id, "node-7", gone.kind, gone.severity, gone.payload, at)
+    topic, retained = mqtt_topic(SETTINGS.sinks[0], item)  # "all": an mqtt sink
+    assert (topic, retained) == ("pipesentry/nodes/node-7/state", True)
+    assert mqtt_message(item)["decommissioned"]["by"] == "admin:kim"
+    assert gone.sinks == ("all",)  # info goes where info is wanted
+    assert slack_text(item).startswith(":no_entry_sign: node node-7 decommissioned by admin:kim")

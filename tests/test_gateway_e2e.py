@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from db.database import open_database
 from db.measurements import load_traces
-from db.models import BaselineRow, DetectionRow, DiMapRow, MeasurementKind, MeasurementRow, NodeRow, StateChangeRow
+from db.models import BaselineRow, DetectionRow, DiMapRow, EventRow, MeasurementKind, MeasurementRow, NodeRow, StateChangeRow
 from imaging.detection import default_threshold
 
 from process_harness import (
@@ -269,6 +269,11 @@ def test_a_decommissioned_node_is_left_alone_until_it_is_recommissioned(run_dir)
             with db.write() as session:
                 recommission_node(session, "retired")
             wait_until(lambda: counts(url)["retired"] >= frozen + 2, 120, 0.3, what="polling again after recommissioning")
+            with db.session() as session:  # both changes were told to the alert sinks, once each
+                kinds = session.scalars(select(EventRow.kind).where(EventRow.node_id == "retired")
+                                        .order_by(EventRow.created_at)).all()
+                told = [k for k in kinds if k in ("node_decommissioned", "node_recommissioned")]
+            assert told == ["node_decommissioned", "node_recommissioned"]
         finally:
             db.dispose()
         assert "polling again" in gw.stderr
