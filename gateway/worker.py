@@ -187,11 +187,9 @@ class NodeWorker:
             decommissioned = is_decommissioned(session, self.settings.id)
         if decommissioned == self._out_of_service:
             return decommissioned
-        self._out_of_service = decommissioned
         if decommissioned:
-            log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
             self._close()
-        with self.db.write() as session:
+        with self.db.write() as session:  # a storage error leaves the change to be noticed again next cycle
             node = get_node(session, self.settings.id)
             if decommissioned:
                 node.online = False  # a poll in flight when it was decommissioned marked it online
@@ -211,7 +209,10 @@ class NodeWorker:
                 event = None
             if event is not None:  # idempotent: a restart finds the same decommissioning, the same id
                 add_event_once(session, event, node_id=node.node_id)
-        if not decommissioned:
+        self._out_of_service = decommissioned
+        if decommissioned:
+            log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
+        else:
             log.info("node recommissioned (API); polling again")
         return decommissioned
 
