@@ -191,9 +191,9 @@ class NodeWorker:
             self._close()
         with self.db.write() as session:  # a storage error leaves the change to be noticed again next cycle
             node = get_node(session, self.settings.id)
+            since = node.decommissioned_at
             if decommissioned:
                 node.online = False  # a poll in flight when it was decommissioned marked it online
-                self._decommissioned_at = node.decommissioned_at
                 event = node_decommissioned_event(
                     self.alerting, node_id=node.node_id, state=node.state.value,
                     decommissioned_at=node.decommissioned_at, by=node.decommissioned_by or "?",
@@ -204,12 +204,11 @@ class NodeWorker:
                     self.alerting, node_id=node.node_id, state=node.state.value,
                     decommissioned_at=self._decommissioned_at,
                 )
-                self._decommissioned_at = None
             else:
                 event = None
             if event is not None:  # idempotent: a restart finds the same decommissioning, the same id
                 add_event_once(session, event, node_id=node.node_id)
-        self._out_of_service = decommissioned
+        self._out_of_service, self._decommissioned_at = decommissioned, since
         if decommissioned:
             log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
         else:
