@@ -17,7 +17,6 @@ import numpy as np
 
 from imaging.arrivals import reference_amplitude
 from imaging.compensation import (
-    DEFAULT_MAX_COMPENSATED_STRETCH,
     DEFAULT_MAX_RESIDUAL,
     DEFAULT_MAX_STRETCH,
     STRETCH_PER_DEGC,
@@ -54,7 +53,9 @@ class AssessSettings:
     compensate: bool = True
     max_stretch: float = DEFAULT_MAX_STRETCH
     max_residual: float = DEFAULT_MAX_RESIDUAL
-    max_compensated_stretch: float = DEFAULT_MAX_COMPENSATED_STRETCH
+    # None: image whatever the stretch (a one-off analysis of two files); the gateway sets
+    # DEFAULT_MAX_COMPENSATED_STRETCH, so that monitoring abstains instead of raising false alarms.
+    max_compensated_stretch: float | None = None
     threshold: float | None = None
     max_defects: int = 3
     grid: Grid | None = None
@@ -76,8 +77,8 @@ class AssessSettings:
             raise SettingsError("max_stretch must be in [0, 0.1)")
         if not self.max_residual > 0:
             raise SettingsError("max_residual must be positive")
-        if not 0 < self.max_compensated_stretch < 0.1:
-            raise SettingsError("max_compensated_stretch must be in (0, 0.1)")
+        if self.max_compensated_stretch is not None and not 0 < self.max_compensated_stretch < 0.1:
+            raise SettingsError("max_compensated_stretch must be None or in (0, 0.1)")
         if self.modal_orders not in ("auto", "off") and not (isinstance(self.modal_orders, int)
                                                              and 0 <= self.modal_orders <= 8):
             raise SettingsError(f"modal_orders must be 'auto', 'off' or 0..8, got {self.modal_orders!r}")
@@ -245,7 +246,8 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         baselines, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
         max_residual=settings.max_residual, rx_mask=mask,
     )
-    if isinstance(match, BaselineMatch) and abs(match.stretch) > settings.max_compensated_stretch:
+    limit = settings.max_compensated_stretch
+    if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:
         match = _too_far_from_the_library(match, settings)
     if isinstance(match, NoValidBaseline):
         elapsed = (time.perf_counter() - start) * 1e3

@@ -7,7 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from imaging.compensation import BaselineMatch, NoValidBaseline, best_stretch, select_baseline, stretched
+from imaging.compensation import (
+    DEFAULT_MAX_COMPENSATED_STRETCH,
+    BaselineMatch,
+    NoValidBaseline,
+    best_stretch,
+    select_baseline,
+    stretched,
+)
 from imaging.pipeline import AssessSettings, assess
 
 from synthetic import baseline_and_scatterers, measurement
@@ -122,8 +129,11 @@ def _steel_pipe_record(temperature_c: float, seed: int):
     return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
 
 
+MONITORING = AssessSettings(wall_mm=4.0, max_compensated_stretch=DEFAULT_MAX_COMPENSATED_STRETCH)  # the gateway's
+
+
 def test_a_record_far_warmer_than_every_baseline_is_abstained_on_not_imaged():
-    settings = AssessSettings(wall_mm=4.0)
+    settings = MONITORING
     result = assess(_steel_pipe_record(45.0, 2), [_steel_pipe_record(20.0, 1)], settings)
     assert result.peak is None and result.di_map is None
     reason = result.no_valid_baseline.reason
@@ -133,7 +143,7 @@ def test_a_record_far_warmer_than_every_baseline_is_abstained_on_not_imaged():
 
 
 def test_a_baseline_near_the_records_temperature_brings_the_imaging_back_below_threshold():
-    settings = AssessSettings(wall_mm=4.0)
+    settings = MONITORING
     library = [_steel_pipe_record(20.0, 1), _steel_pipe_record(40.0, 3)]
     result = assess(_steel_pipe_record(45.0, 2), library, settings)
     assert result.no_valid_baseline is None and result.baseline.index == 1
@@ -141,8 +151,13 @@ def test_a_baseline_near_the_records_temperature_brings_the_imaging_back_below_t
 
 
 def test_within_the_compensated_range_a_warm_sound_pipe_stays_below_threshold():
-    settings = AssessSettings(wall_mm=4.0)
+    settings = MONITORING
     result = assess(_steel_pipe_record(32.0, 2), [_steel_pipe_record(20.0, 1)], settings)
     assert result.no_valid_baseline is None
     assert abs(result.baseline.stretch) < settings.max_compensated_stretch
     assert result.peak.di < settings.effective_threshold
+
+
+def test_a_one_off_analysis_images_whatever_the_stretch():
+    result = assess(_steel_pipe_record(45.0, 2), [_steel_pipe_record(20.0, 1)], AssessSettings(wall_mm=4.0))
+    assert result.no_valid_baseline is None and result.baseline.stretch > DEFAULT_MAX_COMPENSATED_STRETCH

@@ -12,11 +12,16 @@ from pipesentry.errors import fail
 
 
 def format_summary(result) -> str:
+    from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH
+
     lines = [
         f"peak DI {result.peak_di:.6g} ({result.method}, threshold {result.threshold:.4g}, {result.elapsed_ms:.1f} ms)"
     ]
     if result.baseline is not None and result.baseline.stretch:
         lines.append(f"baseline stretched by {result.baseline.stretch * 100:+.4f} % (temperature compensation)")
+        if abs(result.baseline.stretch) > DEFAULT_MAX_COMPENSATED_STRETCH:
+            lines.append(f"caution: beyond the {DEFAULT_MAX_COMPENSATED_STRETCH:.2%} the gateway compensates reliably "
+                         "(it would abstain): weak peaks may be temperature, not the pipe")
     for fault in result.sensor_faults:
         lines.append(f"sensor fault: receiver {fault.rx_index} at {fault.rx_angle_deg:.1f} deg ({fault.kind}), left out")
     if not result.defects:
