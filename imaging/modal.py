@@ -11,8 +11,8 @@ the Tx ring or at the wrong distance. At every time sample this module fits the 
 
 The cost: 2 n_max + 1 of the ring's N degrees of freedom per sample, taken from the defect's
 echo as well (most from a defect near the Tx ring, whose echo arrives almost together at all
-receivers). ``default_modal_orders`` keeps that to at most a third of the ring: n_max = 2 for
-16 receivers, 0 (the axisymmetric part only) for 8, none below 3. See docs/imaging.md.
+receivers). ``default_modal_orders`` keeps that to at most a fifth of the ring (MAX_SHARE):
+n_max = 1 for 16 receivers, 0 (the axisymmetric part only) for 8, none below 5. See docs/imaging.md.
 """
 from __future__ import annotations
 
