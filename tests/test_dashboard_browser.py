@@ -108,3 +108,30 @@ def test_a_labelled_node_shows_its_label_and_a_decommissioned_one_is_gone(api: A
             assert page.locator(f'.node-card[data-node="{QUIET_NODES[1]}"]').count() == 0
         finally:
             assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/recommission").status_code == 200
+
+
+def test_a_blind_node_says_why_and_a_faulty_receiver_is_named_while_the_others_still_load(api: Api, page):
+    import json
+    import sqlite3
+
+    blind, faulty = QUIET_NODES
+    reason = "the record is stretched +0.23% against the closest baseline (about 23 degC in steel)"
+    fault = {"rx_index": 3, "rx_angle_deg": 67.5, "kind": "no_signal", "amplitude_ratio": 0.02, "delay_s": 0.0}
+    with sqlite3.connect(api.db_url.removeprefix("sqlite:///")) as db:  # the module's own copy
+        latest = "SELECT max(id) FROM detections WHERE node_id = ?"
+        db.execute(f"UPDATE detections SET peak_di = NULL, abstain_reason = ?, state = 'no_valid_baseline' "
+                   f"WHERE id = ({latest})", (reason, blind))
+        db.execute("UPDATE nodes SET state = 'no_valid_baseline', latest_di_peak = NULL WHERE node_id = ?", (blind,))
+        db.execute(f"UPDATE detections SET sensor_faults = ? WHERE id = ({latest})", (json.dumps([fault]), faulty))
+    page.goto(f"{api.base_url}/#key={api.keys.viewer}")
+    blind_notice = page.locator(f'.node-card[data-node="{blind}"] .notice')
+    blind_notice.wait_for(state="visible", timeout=WAIT_MS)
+    assert f"Not assessed: {reason}" in blind_notice.inner_text()
+    assert page.locator(f'.node-card[data-node="{blind}"] img.heatmap').is_hidden()
+    fault_notice = page.locator(f'.node-card[data-node="{faulty}"] .notice')
+    fault_notice.wait_for(state="visible", timeout=WAIT_MS)
+    assert "Receivers left out of the map: 3 at 68° (no signal)" in fault_notice.inner_text()
+    damaged_map = page.locator(f'.node-card[data-node="{DAMAGED_NODE}"] img.heatmap')
+    page.wait_for_function("img => img.complete && img.naturalWidth > 0", arg=damaged_map.element_handle(),
+                           timeout=WAIT_MS)
+    assert "refresh failed" not in page.locator("#status").inner_text()

@@ -81,6 +81,7 @@ function card(nodeId) {
     section = el("article", { class: "node-card", "data-node": nodeId },
       el("h3", {}, el("span", { class: "name" }, nodeId), el("span", { class: "badge" })),
       el("p", { class: "meta summary" }),
+      el("p", { class: "notice", hidden: "" }),
       el("img", { class: "heatmap", alt: `latest DI map of ${nodeId}` }),
       el("p", { class: "estimate", hidden: "" }),
       el("p", { class: "meta map-caption" }),
@@ -111,7 +112,8 @@ function drawTrend(target, detections) {
   const lo = Math.min(0, ...values), hi = Math.max(...values) * 1.1 || 1;
   const x = (i) => left + (points.length === 1 ? 0 : (i * (width - left - right)) / (points.length - 1));
   const y = (v) => top + (height - top - bottom) * (1 - (v - lo) / (hi - lo));
-  target.append(svg("polyline", { class: "peak", points: points.map((d, i) => `${x(i)},${y(d.peak_di)}`).join(" ") }));
+  const withPeak = points.map((d, i) => [i, d.peak_di]).filter(([, v]) => v !== null && v !== undefined);
+  target.append(svg("polyline", { class: "peak", points: withPeak.map(([i, v]) => `${x(i)},${y(v)}`).join(" ") }));
   const withThreshold = points.map((d, i) => [i, d.threshold]).filter(([, t]) => t !== null && t !== undefined);
   if (withThreshold.length) {
     target.append(svg("polyline", { class: "threshold", fill: "none",
@@ -143,11 +145,28 @@ async function renderNode(node) {
   drawTrend(section.querySelector(".trend"), page.items);
   const latest = node.latest_detection;
   const estimate = section.querySelector(".estimate");
-  if (!latest) {
+  const img = section.querySelector(".heatmap");
+  const notices = [];
+  if (latest && latest.peak_di === null) {
+    notices.push(`Not assessed: ${latest.abstain_reason || "no valid baseline for the current conditions"}.`);
+  }
+  if (latest && latest.sensor_faults.length) {
+    notices.push("Receivers left out of the map: " +
+      latest.sensor_faults.map((f) => `${f.rx_index} at ${f.rx_angle_deg.toFixed(0)}° (${f.kind.replace("_", " ")})`).join(", ") + ".");
+  }
+  const notice = section.querySelector(".notice");
+  notice.textContent = notices.join(" ");
+  notice.hidden = notices.length === 0;
+  if (!latest || latest.peak_di === null) {
     estimate.hidden = true;
-    section.querySelector(".map-caption").textContent = "No DI map yet (commissioning).";
+    img.hidden = true;
+    section.querySelector(".map-caption").textContent = latest
+      ? `No DI map of measurement ${latest.measurement_id} (${when(latest.created_at)}).`
+      : "No DI map yet (commissioning).";
+    shownMaps.delete(node.node_id);
     return;
   }
+  img.hidden = false;
   if (latest.axial_mm !== null && latest.angle_deg !== null) {
     estimate.hidden = false;
     const flagged = node.state === "damage" || node.state === "suspected";
@@ -163,7 +182,6 @@ async function renderNode(node) {
     `Gateway DI map of measurement ${latest.measurement_id} (${when(latest.created_at)}); ✕ marks the estimate.`;
   if (shownMaps.get(node.node_id) !== latest.measurement_id) {
     const blob = await api(`/measurements/${latest.measurement_id}/di-maps/gateway.png`, "blob");
-    const img = section.querySelector(".heatmap");
     const old = img.src;
     img.src = URL.createObjectURL(blob);
     img.dataset.measurementId = latest.measurement_id;
@@ -181,7 +199,16 @@ async function refresh() {
     document.getElementById("fleet").hidden = false;
     document.getElementById("forget-key").hidden = false;
     renderFleet(nodes);
-    await Promise.all(nodes.map(renderNode));
+    // One node's failure (a map gone missing, a pruned record) must not blank the others.
+    const outcomes = await Promise.allSettled(nodes.map(renderNode));
+    outcomes.forEach((outcome, i) => {
+      if (outcome.status === "rejected") {
+        if (outcome.reason instanceof Unauthorized) throw outcome.reason;
+        const notice = card(nodes[i].node_id).querySelector(".notice");
+        notice.textContent = `Could not load this node's details: ${outcome.reason.message}`;
+        notice.hidden = false;
+      }
+    });
     const damaged = nodes.filter((n) => n.state === "damage").length;
     status.textContent = `${nodes.length} node(s), ${damaged} damaged · updated ${new Date().toLocaleTimeString()}`;
   } catch (error) {
