@@ -187,16 +187,12 @@ def baseline_changed_event(
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.BASELINE_CHANGED, node_id, baseline_id)
     previous = "none" if previous_measurement_id is None else f"measurement {previous_measurement_id}"
-    payload = _payload(
-        settings, eid, EventKind.BASELINE_CHANGED, node_id, Severity.INFO, Severity.INFO, occurred_at,
+    return _node_info_event(
+        settings, EventKind.BASELINE_CHANGED, eid, node_id, occurred_at,
         summary=f"node {node_id} baseline changed to measurement {measurement_id} (was {previous}) by {created_by}: {reason}",
-        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        state=state, online=True, measurement_id=measurement_id,
         extra={"baseline_id": baseline_id, "previous_measurement_id": previous_measurement_id,
                "created_by": created_by, "reason": reason},
-    )
-    return EventInput(
-        kind=EventKind.BASELINE_CHANGED, severity=Severity.INFO, payload=payload,
-        sinks=settings.sink_names_for(Severity.INFO), id=eid,
     )
 
 
@@ -212,15 +208,11 @@ def node_decommissioned_event(
     """``node_decommissioned`` (info): the gateway no longer polls the node and raises no outage
     alert for it. One decommissioning (one ``decommissioned_at``) gives one event id."""
     eid = event_id(EventKind.NODE_DECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    payload = _payload(
-        settings, eid, EventKind.NODE_DECOMMISSIONED, node_id, Severity.INFO, Severity.INFO, decommissioned_at,
+    return _node_info_event(
+        settings, EventKind.NODE_DECOMMISSIONED, eid, node_id, decommissioned_at,
         summary=f"node {node_id} decommissioned by {by}: {reason} (not polled, no outage alerts)",
-        state=str(state), previous_state=str(state), online=False,
+        state=state, online=False,
         extra={"decommissioned": {"at": decommissioned_at.isoformat(), "by": by, "reason": reason}},
-    )
-    return EventInput(
-        kind=EventKind.NODE_DECOMMISSIONED, severity=Severity.INFO, payload=payload,
-        sinks=settings.sink_names_for(Severity.INFO), id=eid,
     )
 
 
@@ -235,16 +227,34 @@ def node_recommissioned_event(
     """``node_recommissioned`` (info): the node decommissioned at ``decommissioned_at`` is polled again."""
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.NODE_RECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    payload = _payload(
-        settings, eid, EventKind.NODE_RECOMMISSIONED, node_id, Severity.INFO, Severity.INFO, occurred_at,
+    return _node_info_event(
+        settings, EventKind.NODE_RECOMMISSIONED, eid, node_id, occurred_at,
         summary=f"node {node_id} back in service (decommissioned since {decommissioned_at:%Y-%m-%d %H:%M} UTC)",
-        state=str(state), previous_state=str(state), online=False,
+        state=state, online=False,
         extra={"decommissioned": None, "decommissioned_since": decommissioned_at.isoformat()},
     )
-    return EventInput(
-        kind=EventKind.NODE_RECOMMISSIONED, severity=Severity.INFO, payload=payload,
-        sinks=settings.sink_names_for(Severity.INFO), id=eid,
+
+
+def _node_info_event(
+    settings: AlertingSettings,
+    kind: EventKind,
+    eid: uuid.UUID,
+    node_id: str,
+    occurred_at: datetime,
+    *,
+    summary: str,
+    state: str,
+    online: bool,
+    extra: dict[str, Any],
+    measurement_id: int | None = None,
+) -> EventInput:
+    """An info event about a node whose state it does not change, routed to the sinks that want info."""
+    payload = _payload(
+        settings, eid, kind, node_id, Severity.INFO, Severity.INFO, occurred_at, summary=summary,
+        state=str(state), previous_state=str(state), online=online, measurement_id=measurement_id, extra=extra,
     )
+    return EventInput(kind=kind, severity=Severity.INFO, payload=payload, sinks=settings.sink_names_for(Severity.INFO),
+                      id=eid)
 
 
 def sink_disabled_event(
