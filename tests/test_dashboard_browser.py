@@ -108,6 +108,14 @@ def test_a_labelled_node_shows_its_label_and_a_decommissioned_one_is_gone(api: A
             assert page.locator(f'.node-card[data-node="{QUIET_NODES[1]}"]').count() == 0
         finally:
             assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/recommission").status_code == 200
+        # While the page is open: back at the next refresh, and gone again after a decommissioning.
+        back = page.locator(f'.node-card[data-node="{QUIET_NODES[1]}"]')
+        back.wait_for(timeout=WAIT_MS)
+        assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/decommission", json={"reason": "again"}).status_code == 200
+        try:
+            back.wait_for(state="detached", timeout=WAIT_MS)
+        finally:
+            assert admin.post(f"/api/v1/nodes/{QUIET_NODES[1]}/recommission").status_code == 200
 
 
 def test_a_blind_node_says_why_and_a_faulty_receiver_is_named_while_the_others_still_load(api: Api, page):

@@ -199,6 +199,10 @@ async function refresh() {
     document.getElementById("fleet").hidden = false;
     document.getElementById("forget-key").hidden = false;
     renderFleet(nodes);
+    const listed = new Set(nodes.map((n) => n.node_id));
+    for (const stale of document.querySelectorAll(".node-card")) {  // decommissioned meanwhile
+      if (!listed.has(stale.dataset.node)) { stale.remove(); shownMaps.delete(stale.dataset.node); }
+    }
     // One node's failure (a map gone missing, a pruned record) must not blank the others.
     const outcomes = await Promise.allSettled(nodes.map(renderNode));
     outcomes.forEach((outcome, i) => {
