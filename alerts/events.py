@@ -187,7 +187,7 @@ def baseline_changed_event(
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.BASELINE_CHANGED, node_id, baseline_id)
     previous = "none" if previous_measurement_id is None else f"measurement {previous_measurement_id}"
-    return _node_info_event(
+    return _node_event(
         settings, EventKind.BASELINE_CHANGED, eid, node_id, occurred_at,
         summary=f"node {node_id} baseline changed to measurement {measurement_id} (was {previous}) by {created_by}: {reason}",
         state=state, online=True, measurement_id=measurement_id,
@@ -208,7 +208,7 @@ def node_decommissioned_event(
     """``node_decommissioned`` (info): the gateway no longer polls the node and raises no outage
     alert for it. One decommissioning (one ``decommissioned_at``) gives one event id."""
     eid = event_id(EventKind.NODE_DECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    return _node_info_event(
+    return _node_event(
         settings, EventKind.NODE_DECOMMISSIONED, eid, node_id, decommissioned_at,
         summary=f"node {node_id} decommissioned by {by}: {reason} (not polled, no outage alerts)",
         state=state, online=False,
@@ -227,7 +227,7 @@ def node_recommissioned_event(
     """``node_recommissioned`` (info): the node decommissioned at ``decommissioned_at`` is polled again."""
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.NODE_RECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    return _node_info_event(
+    return _node_event(
         settings, EventKind.NODE_RECOMMISSIONED, eid, node_id, occurred_at,
         summary=f"node {node_id} back in service (decommissioned since {decommissioned_at:%Y-%m-%d %H:%M} UTC)",
         state=state, online=False,
@@ -235,7 +235,7 @@ def node_recommissioned_event(
     )
 
 
-def _node_info_event(
+def _node_event(
     settings: AlertingSettings,
     kind: EventKind,
     eid: uuid.UUID,
@@ -247,14 +247,17 @@ def _node_info_event(
     online: bool,
     extra: dict[str, Any],
     measurement_id: int | None = None,
+    severity: Severity = Severity.INFO,
+    routing: Severity | None = None,
 ) -> EventInput:
-    """An info event about a node whose state it does not change, routed to the sinks that want info."""
+    """An event about a node whose state it does not change, for the sinks that want ``routing``
+    (default: its severity)."""
+    routing = routing or severity
     payload = _payload(
-        settings, eid, kind, node_id, Severity.INFO, Severity.INFO, occurred_at, summary=summary,
+        settings, eid, kind, node_id, severity, routing, occurred_at, summary=summary,
         state=str(state), previous_state=str(state), online=online, measurement_id=measurement_id, extra=extra,
     )
-    return EventInput(kind=kind, severity=Severity.INFO, payload=payload, sinks=settings.sink_names_for(Severity.INFO),
-                      id=eid)
+    return EventInput(kind=kind, severity=severity, payload=payload, sinks=settings.sink_names_for(routing), id=eid)
 
 
 def sink_disabled_event(
@@ -301,17 +304,13 @@ def sensor_fault_event(
     receiver = _receiver(fault)
     rx = receiver["rx_index"]
     eid = event_id(EventKind.SENSOR_FAULT, node_id, rx, measurement_id)
-    payload = _payload(
-        settings, eid, EventKind.SENSOR_FAULT, node_id, Severity.WARNING, Severity.WARNING, occurred_at,
+    return _node_event(
+        settings, EventKind.SENSOR_FAULT, eid, node_id, occurred_at, severity=Severity.WARNING,
         summary=f"node {node_id} {_receiver_text(receiver)} faulty: {fault_text(receiver)} in {consecutive} "
         "consecutive measurements; left out of the DI map, coverage reduced",
-        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        state=state, online=True, measurement_id=measurement_id,
         extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
                "consecutive_measurements": consecutive},
-    )
-    return EventInput(
-        kind=EventKind.SENSOR_FAULT, severity=Severity.WARNING, payload=payload,
-        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
     )
 
 
@@ -339,18 +338,14 @@ def sensor_fault_cleared_event(
     receiver = _receiver(raised_receiver)
     eid = event_id(EventKind.SENSOR_FAULT_CLEARED, raised_event_id)
     since = "" if raised_measurement_id is None else f" since measurement {raised_measurement_id}"
-    payload = _payload(
-        settings, eid, EventKind.SENSOR_FAULT_CLEARED, node_id, Severity.INFO, Severity.WARNING, occurred_at,
+    return _node_event(
+        settings, EventKind.SENSOR_FAULT_CLEARED, eid, node_id, occurred_at, routing=Severity.WARNING,
         summary=f"node {node_id} {_receiver_text(receiver)} healthy again in {consecutive} consecutive "
         f"measurements (was {receiver['kind']}{since}); back in the DI map",
-        state=str(state), previous_state=str(state), online=True, measurement_id=measurement_id,
+        state=state, online=True, measurement_id=measurement_id,
         extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
                "consecutive_measurements": consecutive, "raised_event_id": str(raised_event_id),
                "raised_measurement_id": raised_measurement_id},
-    )
-    return EventInput(
-        kind=EventKind.SENSOR_FAULT_CLEARED, severity=Severity.INFO, payload=payload,
-        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
     )
 
 
