@@ -104,3 +104,13 @@ def baseline_and_scatterers(
         base = base + rng.normal(0, noise_rms, base.shape)
         cur = cur + rng.normal(0, noise_rms, cur.shape)
     return measurement(base.astype(np.float32), rx), measurement(cur.astype(np.float32), rx)
+
+
+def mock_pipe_record(temperature_c: float, seed: int) -> Measurement:
+    """One record of the mock node's physics (paper pipe, reflecting ends, default noise) at a steady
+    pipe temperature: what temperature does to a sound pipe, compensation included."""
+    from mocknode.physics import acquire
+    from mocknode.scenario import NodeScenario, TemperatureSpec
+
+    scn = NodeScenario(node_id="t", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0))
+    return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)

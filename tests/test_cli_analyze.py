@@ -79,16 +79,9 @@ def test_unwritable_png_exits_2(files):
 
 
 def test_a_pair_far_apart_in_temperature_is_imaged_with_a_caution():
-    import numpy as np
-
     from imaging.pipeline import AssessSettings, assess
-    from mocknode.physics import acquire
-    from mocknode.scenario import NodeScenario, TemperatureSpec
     from pipesentry.commands.analyze import format_summary
-
-    def record(temperature_c, seed):
-        scn = NodeScenario(node_id="t", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0))
-        return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
+    from synthetic import mock_pipe_record as record
 
     text = format_summary(assess(record(45.0, 2), [record(20.0, 1)], AssessSettings(wall_mm=4.0)))
     assert "baseline stretched by +0.2" in text and "caution: beyond the 0.15%" in text

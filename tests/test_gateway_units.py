@@ -72,15 +72,8 @@ def test_the_modal_filter_is_off_unless_a_node_asks_for_it(tmp_path):
 
 
 def test_a_record_beyond_the_compensated_temperature_range_is_stored_as_an_abstention_with_its_reason(tmp_path):
-    import numpy as np
-
     from gateway.assessment import assess_settings, detection_input, run_assessment
-    from mocknode.physics import acquire
-    from mocknode.scenario import TemperatureSpec
-
-    def record(temperature_c: float, seed: int):
-        scn = NodeScenario(node_id="a", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0))
-        return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
+    from synthetic import mock_pipe_record as record
 
     path = tmp_path / "g.toml"
     path.write_text(GOOD.format(db=tmp_path / "x.db") + "[nodes.imaging]\nmax_compensated_stretch = 0.003\n")

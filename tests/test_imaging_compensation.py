@@ -17,7 +17,7 @@ from imaging.compensation import (
 )
 from imaging.pipeline import AssessSettings, assess
 
-from synthetic import baseline_and_scatterers, measurement
+from synthetic import baseline_and_scatterers, measurement, mock_pipe_record
 
 
 def _reverberant_record(seed: int = 0, noise_rms: float = 0.0):
@@ -119,22 +119,12 @@ def test_obs_shortlist_searches_further_before_abstaining():
     assert isinstance(match, BaselineMatch) and match.index == 4
 
 
-def _steel_pipe_record(temperature_c: float, seed: int):
-    """The mock node's physics (reflecting ends, default noise) at a pipe temperature."""
-    from mocknode.physics import acquire
-    from mocknode.scenario import NodeScenario, TemperatureSpec
-
-    scn = NodeScenario(node_id="t", temperature=TemperatureSpec(mean_c=temperature_c, daily_amplitude_c=0.0,
-                                                                jitter_c=0.0))
-    return acquire(scn, 0.0, np.random.default_rng(seed)).to_measurement(scn)
-
-
 MONITORING = AssessSettings(wall_mm=4.0, max_compensated_stretch=DEFAULT_MAX_COMPENSATED_STRETCH)  # the gateway's
 
 
 def test_a_record_far_warmer_than_every_baseline_is_abstained_on_not_imaged():
     settings = MONITORING
-    result = assess(_steel_pipe_record(45.0, 2), [_steel_pipe_record(20.0, 1)], settings)
+    result = assess(mock_pipe_record(45.0, 2), [mock_pipe_record(20.0, 1)], settings)
     assert result.peak is None and result.di_map is None
     reason = result.no_valid_baseline.reason
     # 25 degC warmer: the waves are slower, the record longer (BSS finds +0.23 %, about 23 degC)
@@ -144,20 +134,20 @@ def test_a_record_far_warmer_than_every_baseline_is_abstained_on_not_imaged():
 
 def test_a_baseline_near_the_records_temperature_brings_the_imaging_back_below_threshold():
     settings = MONITORING
-    library = [_steel_pipe_record(20.0, 1), _steel_pipe_record(40.0, 3)]
-    result = assess(_steel_pipe_record(45.0, 2), library, settings)
+    library = [mock_pipe_record(20.0, 1), mock_pipe_record(40.0, 3)]
+    result = assess(mock_pipe_record(45.0, 2), library, settings)
     assert result.no_valid_baseline is None and result.baseline.index == 1
     assert result.peak.di < settings.effective_threshold / 2
 
 
 def test_within_the_compensated_range_a_warm_sound_pipe_stays_below_threshold():
     settings = MONITORING
-    result = assess(_steel_pipe_record(32.0, 2), [_steel_pipe_record(20.0, 1)], settings)
+    result = assess(mock_pipe_record(32.0, 2), [mock_pipe_record(20.0, 1)], settings)
     assert result.no_valid_baseline is None
     assert abs(result.baseline.stretch) < settings.max_compensated_stretch
     assert result.peak.di < settings.effective_threshold
 
 
 def test_a_one_off_analysis_images_whatever_the_stretch():
-    result = assess(_steel_pipe_record(45.0, 2), [_steel_pipe_record(20.0, 1)], AssessSettings(wall_mm=4.0))
+    result = assess(mock_pipe_record(45.0, 2), [mock_pipe_record(20.0, 1)], AssessSettings(wall_mm=4.0))
     assert result.no_valid_baseline is None and result.baseline.stretch > DEFAULT_MAX_COMPENSATED_STRETCH
