@@ -21,6 +21,7 @@ from typing import Protocol
 
 from alerts.alertmanager import AlertmanagerTransport
 from alerts.backoff import retry_delay_s
+from alerts.baseline_watch import check_baseline_changes
 from alerts.config import (
     AlertingSettings,
     AlertmanagerSinkSettings,
@@ -32,7 +33,6 @@ from alerts.config import (
 from alerts.errors import DeliveryFailed, EndpointGone
 from alerts.events import EventKind, sink_disabled_event
 from alerts.mqtt import MqttTransport
-from alerts.baseline_watch import check_baseline_changes
 from alerts.outages import check_outages
 from alerts.outbox import (
     OutboxEvent,

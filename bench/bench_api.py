@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import subprocess
-import shutil
 import re
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -50,7 +50,7 @@ SIMULATED_NODES_NICE = 19
 
 
 def deployed_gateway_nice() -> int:
-    match = re.search(r"^Nice=(-?\d+)\s*$", GATEWAY_UNIT.read_text(), re.M)
+    match = re.search(r"^Nice=(-?\d+)\s*$", GATEWAY_UNIT.read_text(), re.MULTILINE)
     return int(match.group(1)) if match else 0
 
 
@@ -126,10 +126,10 @@ def wrk_load(base: str, token: str, clients: int, duration_s: float, run_dir: Pa
     script = run_dir / "mix.lua"
     script.write_text(WRK_SCRIPT % (", ".join(f'"{p}"' for p in paths), token))
     out = subprocess.run([exe, "-t1", f"-c{clients}", f"-d{duration_s:.0f}s", "--latency", "-s", str(script), base],
-                         capture_output=True, text=True, timeout=duration_s + 60).stdout
+                         capture_output=True, text=True, timeout=duration_s + 60, check=True).stdout
 
     def ms(label: str) -> float:
-        match = re.search(rf"^\s*{label}\s+([\d.]+)(us|ms|s)\s*$", out, re.M)
+        match = re.search(rf"^\s*{label}\s+([\d.]+)(us|ms|s)\s*$", out, re.MULTILINE)
         value, unit = float(match.group(1)), match.group(2)
         return value * {"us": 1e-3, "ms": 1.0, "s": 1e3}[unit]
 

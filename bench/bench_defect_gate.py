@@ -20,13 +20,20 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_accuracy import METHODS, PAPER_CASES, leaky, record, scenario  # noqa: E402
+from bench_accuracy import METHODS, PAPER_CASES, leaky, record, scenario
 
-import imaging.multidefect as multidefect  # noqa: E402
-from imaging.pipeline import assess  # noqa: E402
-from imaging.timing import surface_distance_mm  # noqa: E402
-from mocknode.scenario import (  # noqa: E402
-    AcquisitionSpec, DefectSpec, ExcitationSpec, ModesSpec, NodeScenario, NotchSize, PipeSpec, RingSpec,
+import imaging.multidefect as multidefect
+from imaging.pipeline import assess
+from imaging.timing import surface_distance_mm
+from mocknode.scenario import (
+    AcquisitionSpec,
+    DefectSpec,
+    ExcitationSpec,
+    ModesSpec,
+    NodeScenario,
+    NotchSize,
+    PipeSpec,
+    RingSpec,
 )
 
 NOISE = AcquisitionSpec().noise_v_rms

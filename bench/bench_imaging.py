@@ -28,11 +28,11 @@ import numpy as np  # noqa: E402
 from imaging import gather  # noqa: E402
 from imaging.arrivals import reference_amplitude  # noqa: E402
 from imaging.dimap import compute_di_map, literal_di_map  # noqa: E402
+from imaging.features import residual_feature  # noqa: E402
 from imaging.grid import Grid  # noqa: E402
 from imaging.measurement import Measurement  # noqa: E402
 from imaging.multipath import local_multipath_pixels, path_model_for, residual_map  # noqa: E402
 from imaging.pipeline import AssessSettings, assess, default_grid  # noqa: E402
-from imaging.features import residual_feature  # noqa: E402
 from mocknode.physics import Acquisition, quantise_volts, simulate_volts  # noqa: E402
 from mocknode.scenario import AcquisitionSpec, DefectSpec, NodeScenario, PipeSpec  # noqa: E402
 

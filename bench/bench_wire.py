@@ -12,12 +12,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gateway.node_client import NodeClient  # noqa: E402
-from mocknode.node import MockNode  # noqa: E402
-from mocknode.scenario import default_scenario  # noqa: E402
-from mocknode.server import MockNodeServer  # noqa: E402
-from protocol.framing import Frame, FrameDecoder, encode_frame  # noqa: E402
-from protocol.messages import AcquireRequest, ComputeDiRequest, ReadDiRequest, ReadTracesRequest  # noqa: E402
+from gateway.node_client import NodeClient
+from mocknode.node import MockNode
+from mocknode.scenario import default_scenario
+from mocknode.server import MockNodeServer
+from protocol.framing import Frame, FrameDecoder, encode_frame
+from protocol.messages import AcquireRequest, ComputeDiRequest, ReadDiRequest, ReadTracesRequest
 
 BAUD = 230400
 LINE_BYTES_PER_S = BAUD / 10  # 8N1: start + 8 data + stop bits

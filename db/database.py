@@ -12,7 +12,6 @@ from sqlalchemy.orm import Session, sessionmaker
 from db import migrate, sqlite_setup
 from db.errors import SchemaOutOfDate, translate_db_error
 
-
 SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
 SQLITE_POOL_OVERFLOW = 32
 

@@ -16,7 +16,7 @@ from db.records import DetectionInput
 from gateway.config import NodeSettings
 from gateway.measurement_build import NodeGeometryView, measurement_from_codes
 from imaging.measurement import Measurement
-from imaging.pipeline import AssessSettings, Assessment, assess
+from imaging.pipeline import Assessment, AssessSettings, assess
 
 
 class BaselineLibrary:

@@ -58,7 +58,7 @@ class ThresholdSettings(_Section):
     )
 
     @model_validator(mode="after")
-    def _absolute_needs_a_value(self) -> "ThresholdSettings":
+    def _absolute_needs_a_value(self) -> ThresholdSettings:
         if self.mode == "absolute" and self.absolute is None:
             raise ValueError("mode = 'absolute' needs 'absolute' set to the threshold value")
         return self
@@ -143,7 +143,7 @@ class GatewaySettings(BaseSettings):
     nodes: list[NodeSettings] = Field(min_length=1)
 
     @model_validator(mode="after")
-    def _unique_nodes(self) -> "GatewaySettings":
+    def _unique_nodes(self) -> GatewaySettings:
         ids = [n.id for n in self.nodes]
         dup = sorted({i for i in ids if ids.count(i) > 1})
         if dup:

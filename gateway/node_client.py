@@ -41,8 +41,16 @@ from protocol.messages import (
 )
 
 __all__ = [
-    "NodeClient", "NodeClientError", "NodeTimeout", "ProtocolMismatch", "PortVanished",
-    "NodeError", "NodeRebooted", "TransferError", "TraceTransfer", "DiTransfer",
+    "DiTransfer",
+    "NodeClient",
+    "NodeClientError",
+    "NodeError",
+    "NodeRebooted",
+    "NodeTimeout",
+    "PortVanished",
+    "ProtocolMismatch",
+    "TraceTransfer",
+    "TransferError",
 ]
 
 

@@ -5,6 +5,7 @@ Knows ports only: bytes in, bytes out, and the difference between "nothing arriv
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import serial
@@ -52,10 +53,8 @@ class SerialTransport:
     def close(self) -> None:
         port, self._port = self._port, None
         if port is not None:
-            try:
+            with contextlib.suppress(PORT_ERRORS):  # a port that already vanished has nothing left to release
                 port.close()
-            except PORT_ERRORS:
-                pass  # closing a port that already vanished has nothing left to release
 
     def reopen(self) -> None:
         """Close (if still open) and open the same URL again; raises PortVanished if absent."""

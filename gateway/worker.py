@@ -14,7 +14,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from sqlalchemy import func, select
 
+from alerts.config import AlertingSettings
+from alerts.events import node_decommissioned_event, node_recommissioned_event, state_change_event
+from alerts.outbox import add_event_once
+from alerts.sensor_faults import check_sensor_faults
 from db.baselines import active_baseline, set_active_baseline
 from db.clock import utc_now
 from db.database import Database
@@ -23,12 +28,8 @@ from db.measurements import add_event, store_measurement
 from db.models import DetectionRow, MapSource, MeasurementKind, MeasurementRow, NodeState
 from db.nodes import get_node, is_decommissioned, record_node_health, upsert_node
 from db.records import DiMapInput, MapGrid, NodeInfo, StateChangeInput
-from alerts.config import AlertingSettings
-from alerts.events import node_decommissioned_event, node_recommissioned_event, state_change_event
-from alerts.outbox import add_event_once
-from alerts.sensor_faults import check_sensor_faults
-from gateway.config import NodeSettings
 from gateway.assessment import BaselineLibrary, assess_settings, detection_input, joins_library, run_assessment
+from gateway.config import NodeSettings
 from gateway.flagging import FLAGGING_STATES, FlagState, step, threshold_for
 from gateway.logs import node_context
 from gateway.measurement_build import NodeGeometryView, effective_geometry, measurement_from_codes
@@ -42,7 +43,6 @@ from gateway.transport import PORT_ERRORS
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
 from protocol.messages import ConfigureReply, InfoReply
-from sqlalchemy import func, select
 
 log = logging.getLogger("pipesentry.gateway")
 
@@ -342,9 +342,9 @@ class NodeWorker:
 
     def _threshold(self, session, baseline_measurement_id: int) -> float | None:
         """The node's threshold: absolute, or calibrated on the first K monitor peaks since its baseline."""
-        if self._threshold_cache is not None and self._threshold_cache[0] == baseline_measurement_id:
-            if self._threshold_cache[1] is not None:
-                return self._threshold_cache[1]
+        cache = self._threshold_cache
+        if cache is not None and cache[0] == baseline_measurement_id and cache[1] is not None:
+            return cache[1]
         settings = self.settings.threshold
         peaks: list[float] = []
         if settings.mode == "calibrated":

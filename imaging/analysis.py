@@ -10,7 +10,7 @@ import math
 
 from imaging.grid import Grid
 from imaging.measurement import Measurement
-from imaging.pipeline import AssessSettings, Assessment
+from imaging.pipeline import Assessment, AssessSettings
 
 Analysis = Assessment  # the result type; kept under its old name for existing callers
 

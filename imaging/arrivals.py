@@ -20,7 +20,7 @@ from imaging.timing import MM_PER_M
 
 def hann_burst(fs_hz: float, excitation_hz: float, cycles: int) -> np.ndarray:
     """The paper's excitation 0.5 (1 - cos(2 pi f t / n)) sin(2 pi f t), 0 <= t <= n/f, sampled at fs."""
-    n = max(2, int(math.floor(cycles / excitation_hz * fs_hz)) + 1)
+    n = max(2, math.floor(cycles / excitation_hz * fs_hz) + 1)
     t = np.arange(n) / fs_hz
     phase = 2.0 * math.pi * excitation_hz * t
     return 0.5 * (1.0 - np.cos(phase / cycles)) * np.sin(phase)
@@ -104,7 +104,7 @@ def _direct_arrival(m: Measurement, env: np.ndarray, search_s: float | None) -> 
     safe = np.where(curv < 0, curv, -1.0)
     offset = np.where(curv < 0, np.clip(0.5 * (left - right) / safe, -0.5, 0.5), 0.0)
     time_s = m.t0_s + (lo + k + offset) / m.fs_hz
-    amplitude, time_s = peak / scale, time_s
+    amplitude = peak / scale
     amplitude.setflags(write=False)
     time_s.setflags(write=False)
     return DirectArrival(amplitude, time_s)
@@ -163,8 +163,8 @@ def end_reflection_coefficients(m: Measurement) -> tuple[float, float]:
     burst_mm = m.cycles / m.excitation_hz * c_mm_s
 
     def measured(path_mm: float) -> float | None:
-        k = int(round((path_mm / c_mm_s - m.t0_s) * m.fs_hz))
-        half = int(round(0.25 * m.cycles / m.excitation_hz * m.fs_hz))
+        k = round((path_mm / c_mm_s - m.t0_s) * m.fs_hz)
+        half = round(0.25 * m.cycles / m.excitation_hz * m.fs_hz)
         if k - half < 0 or k + half >= m.n_samples:
             return None
         return float(np.max(env[k - half : k + half + 1]) / direct)

@@ -17,7 +17,7 @@ import numpy as np
 
 from imaging.grid import Grid
 from imaging.measurement import Measurement
-from imaging.timing import shortest_path_tof_s, window_starts, wrapped_arc_mm, MM_PER_M
+from imaging.timing import MM_PER_M, shortest_path_tof_s, window_starts, wrapped_arc_mm
 
 
 class BaselineMismatch(ValueError):
@@ -40,7 +40,7 @@ class DIMap:
 
 def default_window_samples(m: Measurement) -> int:
     """The excitation length cycles/f in samples (588 at 85 kHz, 667 at 75 kHz for 5 cycles at 10 MHz)."""
-    return max(1, int(round(m.cycles / m.excitation_hz * m.fs_hz)))
+    return max(1, round(m.cycles / m.excitation_hz * m.fs_hz))
 
 
 def check_compatible(baseline: Measurement, current: Measurement) -> None:

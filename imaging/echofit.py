@@ -28,7 +28,7 @@ FIT_RCOND = 1e-6  # relative cut-off on the Gram matrix's singular values (1e-3 
 
 def burst_pair(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:
     """The Hann burst and its quadrature twin (carrier shifted by 90 degrees): any carrier phase is a mix."""
-    n = max(2, int(math.floor(cycles / excitation_hz * fs_hz)) + 1)
+    n = max(2, math.floor(cycles / excitation_hz * fs_hz) + 1)
     t = np.arange(n) / fs_hz
     window = 0.5 * (1.0 - np.cos(2.0 * math.pi * excitation_hz * t / cycles))
     phase = 2.0 * math.pi * excitation_hz * t

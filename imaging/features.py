@@ -19,7 +19,6 @@ from typing import Literal
 
 import numpy as np
 
-
 from imaging.arrivals import analytic_signal, burst_autocorrelation_peak, hann_burst, matched_envelope, matched_filter
 from imaging.dimap import windowed_energy
 

@@ -34,10 +34,10 @@ class Grid:
             raise GridError("the angle axis must not cover more than one turn")
 
     @classmethod
-    def default(cls, tx_rx_distance_mm: float, axial_step_mm: float = 1.0, angle_step_deg: float = 1.0) -> "Grid":
+    def default(cls, tx_rx_distance_mm: float, axial_step_mm: float = 1.0, angle_step_deg: float = 1.0) -> Grid:
         """1 mm x 1 deg over 0..tx_rx_distance (inclusive) x 0..359 deg, as in the paper's figures."""
         axial_count = int(np.floor(tx_rx_distance_mm / axial_step_mm + 1e-9)) + 1
-        angle_count = int(round(360.0 / angle_step_deg))
+        angle_count = round(360.0 / angle_step_deg)
         return cls(0.0, float(axial_step_mm), axial_count, 0.0, float(angle_step_deg), angle_count)
 
     @property
@@ -68,7 +68,7 @@ class Grid:
         }
 
     @classmethod
-    def from_spec(cls, spec: dict) -> "Grid":
+    def from_spec(cls, spec: dict) -> Grid:
         try:
             return cls(
                 float(spec["axial_start_mm"]),

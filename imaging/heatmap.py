@@ -7,10 +7,10 @@ from collections.abc import Sequence
 import matplotlib
 
 matplotlib.use("Agg")  # headless: no display on gateways or servers
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from imaging.dimap import DIMap  # noqa: E402
-from imaging.localize import Estimate  # noqa: E402
+from imaging.dimap import DIMap
+from imaging.localize import Estimate
 
 
 def heatmap_png(

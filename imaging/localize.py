@@ -103,7 +103,7 @@ def peak_confidence(di_map: DIMap, estimate: Estimate, *, circumference_mm: floa
     was (so both sides of the ratio are sampled alike; imaging/multidefect.py)."""
     px, grid = di_map.pixels, di_map.grid
     i = int(np.clip(round((estimate.axial_mm - grid.axial_start_mm) / grid.axial_step_mm), 0, grid.axial_count - 1))
-    j = int(round((estimate.angle_deg - grid.angle_start_deg) / grid.angle_step_deg))
+    j = round((estimate.angle_deg - grid.angle_start_deg) / grid.angle_step_deg)
     j = j % grid.angle_count if grid.wraps_in_angle else int(np.clip(j, 0, grid.angle_count - 1))
     # The estimate's own DI when it was refined off the map's pixels (a finer local grid).
     peak = max(float(px[i, j]), float(estimate.di))

@@ -87,11 +87,12 @@ class Measurement:
             if not (math.isfinite(value) and value >= 0):
                 raise MeasurementError(f"{name} must be a non-negative finite number, got {value!r}")
             object.__setattr__(self, name, value)
-        if self.pipe_length_mm is not None and self.tx_axial_mm is not None:
-            if self.tx_axial_mm + self.tx_rx_distance_mm > self.pipe_length_mm:
-                raise MeasurementError(
-                    "the Rx ring (tx_axial_mm + tx_rx_distance_mm) lies beyond pipe_length_mm"
-                )
+        if (
+            self.pipe_length_mm is not None
+            and self.tx_axial_mm is not None
+            and self.tx_axial_mm + self.tx_rx_distance_mm > self.pipe_length_mm
+        ):
+            raise MeasurementError("the Rx ring (tx_axial_mm + tx_rx_distance_mm) lies beyond pipe_length_mm")
 
     @property
     def n_rx(self) -> int:

@@ -12,8 +12,8 @@ the others' echoes removed.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -86,8 +86,8 @@ def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, 
     step_mm, step_deg = min(grid.axial_step_mm, FINE_STEP_MM), min(grid.angle_step_deg, FINE_STEP_DEG)
     if step_mm == grid.axial_step_mm and step_deg == grid.angle_step_deg:
         return refine_peak(di_map, i, j)
-    half_z = int(round(half_width * grid.axial_step_mm / step_mm))
-    half_a = int(round(half_width * grid.angle_step_deg / step_deg))
+    half_z = round(half_width * grid.axial_step_mm / step_mm)
+    half_a = round(half_width * grid.angle_step_deg / step_deg)
     z_lo, z_hi = grid.axial_start_mm, grid.axial_start_mm + grid.axial_step_mm * (grid.axial_count - 1)
     a_lo, a_hi = (-math.inf, math.inf) if grid.wraps_in_angle else (
         grid.angle_start_deg, grid.angle_start_deg + grid.angle_step_deg * (grid.angle_count - 1))

@@ -135,7 +135,7 @@ def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, i
     for angle in rx_angles_deg:
         steps = (float(angle) - ref) / grid.angle_step_deg
         if grid.wraps_in_angle and abs(steps - round(steps)) < 1e-9:
-            plan.append((ref, int(round(steps)) % grid.angle_count))
+            plan.append((ref, round(steps) % grid.angle_count))
         else:
             plan.append((float(angle), 0))
     return plan
@@ -148,7 +148,7 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
     """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle],
     and its ``_reciprocal``."""
     total = np.zeros((coherence_groups(model),) + grid.shape)
-    for (angle, roll), healthy in zip(plan, mask):
+    for (angle, roll), healthy in zip(plan, mask, strict=True):
         if healthy:
             table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power)
             total += np.roll(table.weight_sq.reshape(total.shape), roll, axis=2)
@@ -297,7 +297,7 @@ def literal_multipath_pixels(
             if total_sq <= 0:
                 continue
             if coherent:
-                snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq) if q > 0) / n_fam)
+                snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq, strict=True) if q > 0) / n_fam)
                 out[i, j] = snr if normalise == "snr" else snr * math.sqrt(n_fam) / math.sqrt(total_sq)
             else:
                 weighted = sum(s.real for s in sums)

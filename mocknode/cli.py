@@ -4,7 +4,7 @@ from __future__ import annotations
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from pydantic import ValidationError
@@ -26,22 +26,22 @@ def _announce(node_id: str, url: str) -> None:
 
 
 def mock_node(
-    scenario: Annotated[Optional[Path], typer.Option(help="scenario TOML; default: built-in scenario")] = None,
+    scenario: Annotated[Path | None, typer.Option(help="scenario TOML; default: built-in scenario")] = None,
     nodes: Annotated[int, typer.Option(min=1, max=256, help="nodes of the built-in scenario")] = 1,
     tcp: Annotated[bool, typer.Option(help="serve on TCP 127.0.0.1 (socket://) instead of pseudo-terminals")] = False,
     port: Annotated[int, typer.Option(min=0, max=65535, help="first TCP port (0: ephemeral)")] = 0,
     baud: Annotated[int, typer.Option(min=300, help="line rate for pacing, bit/s (8N1)")] = 230400,
     pace: Annotated[bool, typer.Option(help="send no faster than baud/10 bytes/s, like the real UART")] = False,
-    link_dir: Annotated[Optional[Path], typer.Option(help="keep DIR/<node_id> symlinks to the current pty")] = None,
-    corrupt_byte_rate: Annotated[Optional[float], typer.Option(help="fault: bit flips per sent byte")] = None,
-    drop_byte_rate: Annotated[Optional[float], typer.Option(help="fault: dropped sent bytes per byte")] = None,
-    stall_probability: Annotated[Optional[float], typer.Option(help="fault: per request, hang stall_s")] = None,
-    stall_s: Annotated[Optional[float], typer.Option(help="fault: length of a stall, s")] = None,
-    disconnect_every_s: Annotated[Optional[float], typer.Option(help="fault: drop the port every N s")] = None,
-    reconnect_after_s: Annotated[Optional[float], typer.Option(help="fault: port absent for N s")] = None,
-    reboot_probability: Annotated[Optional[float], typer.Option(help="fault: reboot per bulk frame sent")] = None,
-    garbage_on_power_up: Annotated[Optional[int], typer.Option(help="fault: garbage bytes at boot")] = None,
-    protocol_version: Annotated[Optional[int], typer.Option(help="fault: announce this protocol version")] = None,
+    link_dir: Annotated[Path | None, typer.Option(help="keep DIR/<node_id> symlinks to the current pty")] = None,
+    corrupt_byte_rate: Annotated[float | None, typer.Option(help="fault: bit flips per sent byte")] = None,
+    drop_byte_rate: Annotated[float | None, typer.Option(help="fault: dropped sent bytes per byte")] = None,
+    stall_probability: Annotated[float | None, typer.Option(help="fault: per request, hang stall_s")] = None,
+    stall_s: Annotated[float | None, typer.Option(help="fault: length of a stall, s")] = None,
+    disconnect_every_s: Annotated[float | None, typer.Option(help="fault: drop the port every N s")] = None,
+    reconnect_after_s: Annotated[float | None, typer.Option(help="fault: port absent for N s")] = None,
+    reboot_probability: Annotated[float | None, typer.Option(help="fault: reboot per bulk frame sent")] = None,
+    garbage_on_power_up: Annotated[int | None, typer.Option(help="fault: garbage bytes at boot")] = None,
+    protocol_version: Annotated[int | None, typer.Option(help="fault: announce this protocol version")] = None,
 ) -> None:
     """Serve simulated nodes; prints "<node_id> <port>" for every port it opens (again after a reconnect)."""
     overrides = {

@@ -103,10 +103,7 @@ def _lamb_phase_velocity(freqs_hz: np.ndarray, thickness_mm: float, c_l: float, 
     vals = _rayleigh_lamb(grid, omega, thickness_mm / 2, c_l, c_t, symmetric)
     change = np.signbit(vals[:, :-1]) != np.signbit(vals[:, 1:])
     # S0: the fastest root below c_L; A0: the slowest root.
-    if symmetric:
-        j = change.shape[1] - 1 - np.argmax(change[:, ::-1], axis=1)
-    else:
-        j = np.argmax(change, axis=1)
+    j = change.shape[1] - 1 - np.argmax(change[:, ::-1], axis=1) if symmetric else np.argmax(change, axis=1)
     if not np.all(change[np.arange(change.shape[0]), j]):
         raise DispersionError("a plate mode was not bracketed (frequency too high for the table?)")
     lo, hi = grid[0, j].copy(), grid[0, j + 1].copy()

@@ -30,7 +30,7 @@ def _pulse(scn: NodeScenario) -> np.ndarray:
     from mocknode.physics import hann_pulse
 
     acq, exc = scn.acquisition, scn.excitation
-    n_pulse = int(math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz)) + 1
+    n_pulse = math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz) + 1
     return hann_pulse(np.arange(n_pulse) / acq.fs_hz, exc.frequency_hz, exc.cycles)
 
 

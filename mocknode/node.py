@@ -11,8 +11,9 @@ import math
 import random
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
+from typing import ClassVar
 
 import numpy as np
 
@@ -353,7 +354,7 @@ class MockNode:
         )
         return [meta, *self._chunks(data, message.chunks)]
 
-    _HANDLERS: dict[type, Callable] = {
+    _HANDLERS: ClassVar[dict[type, Callable]] = {
         InfoRequest: _info,
         StatusRequest: _status,
         ConfigureRequest: _configure,

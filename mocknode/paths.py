@@ -46,7 +46,7 @@ def image_points(z_mm: float, near_end_mm: float, far_end_mm: float, reflection:
     pipe length. Returns (positions, amplitude R**reflections), strongest-first order not implied.
     """
     period = 2.0 * (far_end_mm - near_end_mm)
-    n_max = int(math.ceil(max_distance_mm / period)) + 1
+    n_max = math.ceil(max_distance_mm / period) + 1
     n = np.arange(-n_max, n_max + 1)
     pos = np.concatenate([z_mm + n * period, 2 * near_end_mm - z_mm + n * period])
     bounces = np.concatenate([2 * np.abs(n), np.abs(2 * n - 1)])

@@ -70,7 +70,7 @@ def all_arrivals(scn: NodeScenario, defects: list[ActiveDefect], velocity: float
 def _pulse_band(scn: NodeScenario, n_fft: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(bin indices, frequencies Hz, spectrum) of the sampled excitation pulse where it is significant."""
     acq, exc = scn.acquisition, scn.excitation
-    n_pulse = int(math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz)) + 1
+    n_pulse = math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz) + 1
     pulse = hann_pulse(np.arange(n_pulse) / acq.fs_hz, exc.frequency_hz, exc.cycles)
     spectrum = sp_fft.rfft(pulse, n_fft)
     freqs = sp_fft.rfftfreq(n_fft, 1.0 / acq.fs_hz)
@@ -80,7 +80,7 @@ def _pulse_band(scn: NodeScenario, n_fft: int) -> tuple[np.ndarray, np.ndarray, 
 
 def _fft_length(scn: NodeScenario) -> int:
     acq, exc = scn.acquisition, scn.excitation
-    n_pulse = int(math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz)) + 1
+    n_pulse = math.ceil(exc.cycles / exc.frequency_hz * acq.fs_hz) + 1
     # Room for a pulse hanging off either end of the record, so circular wrap never shows.
     return sp_fft.next_fast_len(acq.n_samples + 2 * n_pulse + 2, real=True)
 

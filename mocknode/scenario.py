@@ -193,7 +193,7 @@ class DefectSpec(_Strict):
         expected = NotchSize if self.kind == "notch" else MassSize
         if not isinstance(self.size, expected):
             keys = "/".join(expected.model_fields)
-            raise ValueError(f"size: a {self.kind} takes {keys}")
+            raise ValueError(f"size: a {self.kind} takes {keys}")  # noqa: TRY004 (pydantic reports ValueError)
         return self
 
 

@@ -8,6 +8,7 @@ node reboots then, as a USB-powered board does.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
@@ -15,8 +16,9 @@ import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -66,10 +68,8 @@ class _PtyPort:
 
     def close(self) -> None:
         for fd in (self.master, self._slave):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
 
 class _TcpPort:

@@ -20,7 +20,7 @@ def node_views(session: Session, *, include_decommissioned: bool = False) -> lis
     baselines = {
         b.node_id: b for b in session.scalars(select(BaselineRow).where(BaselineRow.active.is_(True)))
     }
-    return [_node_view(n, baselines.get(n.node_id), d) for n, d in zip(nodes, _latest_detections(session, nodes))]
+    return [_node_view(n, baselines.get(n.node_id), d) for n, d in zip(nodes, _latest_detections(session, nodes), strict=True)]
 
 
 def node_view(session: Session, node_id: str) -> schemas.Node:

@@ -6,11 +6,11 @@ from datetime import datetime
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from db.errors import NotFound
 from db.measurements import get_measurement
 from db.models import DetectionRow, MeasurementKind, MeasurementRow, NodeState
 from db.nodes import get_node
 from db.pagination import keyset_page
-from db.errors import NotFound
 from db.queries import detection_for, di_maps_for, latest_detection, measurements_page
 from service import schemas
 

@@ -176,7 +176,7 @@ async def _on_storage_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unhandled error in %s %s", request.method, request.url.path)
+    log.error("unhandled error in %s %s", request.method, request.url.path, exc_info=exc)
     return problem_response(INTERNAL, INTERNAL.title, request)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -39,12 +39,12 @@ def analyze(
     baseline: Annotated[Path, typer.Option(help="baseline (defect-free) measurement, .npz or .csv")],
     current: Annotated[Path, typer.Option(help="current measurement, .npz or .csv")],
     as_json: Annotated[bool, typer.Option("--json", help="print exactly one JSON object")] = False,
-    png: Annotated[Optional[Path], typer.Option(help="write the DI-map heatmap to this PNG file")] = None,
+    png: Annotated[Path | None, typer.Option(help="write the DI-map heatmap to this PNG file")] = None,
     method: Annotated[str, typer.Option(help="multipath (all paths, default) or paper (Algorithm 1)")] = "multipath",
     feature: Annotated[str, typer.Option(help="multipath feature: analytic (default), envelope or squared")] = "analytic",
-    threshold: Annotated[Optional[float], typer.Option(help="detection threshold (default: documented per method)")] = None,
+    threshold: Annotated[float | None, typer.Option(help="detection threshold (default: documented per method)")] = None,
     max_defects: Annotated[int, typer.Option(help="report at most this many defects")] = 3,
-    wall_mm: Annotated[Optional[float], typer.Option(help="pipe wall thickness, for the mid-wall wrap length")] = None,
+    wall_mm: Annotated[float | None, typer.Option(help="pipe wall thickness, for the mid-wall wrap length")] = None,
     compensate: Annotated[bool, typer.Option(help="stretch the baseline to the current temperature")] = True,
 ) -> None:
     """Image CURRENT against BASELINE and estimate the defect positions."""

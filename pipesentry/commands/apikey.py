@@ -22,7 +22,6 @@ DatabaseUrl = Annotated[
 @contextmanager
 def _database(url: str | None) -> Iterator[object]:
     from db.errors import StorageError
-
     from service.database import DatabaseGate
     from service.settings import ApiSettings
 

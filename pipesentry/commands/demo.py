@@ -116,7 +116,6 @@ def demo(
 ) -> None:
     """Run simulated nodes and the gateway on SQLite, and show damage being flagged as it arises."""
     from mocknode.scenario import ScenarioError, load_scenario
-
     from pipesentry.demo_progress import Progress
 
     try:
@@ -150,7 +149,7 @@ def demo(
         typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
         key = subprocess.run(
             exe + ["apikey", "create", "--name", "demo", "--role", "operator", "--database-url", db_url],
-            capture_output=True, text=True, timeout=60,
+            capture_output=True, text=True, timeout=60, check=False,
         )
         if key.returncode != 0:
             fail(f"cannot create the demo API key: {key.stderr.strip()}")

@@ -1,0 +1,80 @@
+"""Facts the gateway finds in the database: node outages (offline, back online) and new baselines."""
+from __future__ import annotations
+
+from datetime import timedelta
+
+from alerts.events import EventKind
+from alerts.outages import check_outages
+from alerts.outbox import events_of_kind
+from db.nodes import record_node_health
+from tests.support.alerts_fixtures import T0, alerting
+
+SETTINGS = alerting({"type": "mqtt", "name": "scada", "host": "127.0.0.1"}, offline_after_s=600)
+
+
+def check(database, now, watching_since=T0):
+    with database.write() as session:
+        return [e.kind for e in check_outages(session, SETTINGS, now=now, watching_since=watching_since)]
+
+
+def test_a_silent_node_is_reported_offline_once_and_online_when_it_answers(outbox_db):
+    # All three nodes were last seen at T0.
+    assert check(outbox_db, T0 + timedelta(minutes=9)) == []
+    assert check(outbox_db, T0 + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE] * 3
+    assert check(outbox_db, T0 + timedelta(minutes=30)) == []  # the same outage is not reported again
+    with outbox_db.write() as session:
+        record_node_health(session, "node-b", online=True, seen_at=T0 + timedelta(minutes=40))
+    assert check(outbox_db, T0 + timedelta(minutes=41)) == [EventKind.NODE_ONLINE]
+    assert check(outbox_db, T0 + timedelta(minutes=42)) == []
+    with outbox_db.session() as session:
+        online, = events_of_kind(session, EventKind.NODE_ONLINE)
+        offline = {e.node_id: e for e in events_of_kind(session, EventKind.NODE_OFFLINE)}
+        offline_sinks = [d.sink for d in offline["node-a"].deliveries]
+    assert online.node_id == "node-b" and online.payload["offline_event_id"] == str(offline["node-b"].id)
+    assert online.payload["offline_for_s"] == 2400.0
+    assert offline["node-a"].severity.value == "warning" and offline_sinks == ["scada"]
+    # node-b goes silent again: a new outage, a new event.
+    assert check(outbox_db, T0 + timedelta(minutes=52)) == [EventKind.NODE_OFFLINE]
+
+
+def test_the_gateways_own_downtime_does_not_count_against_the_nodes(outbox_db):
+    restarted = T0 + timedelta(hours=5)
+    assert check(outbox_db, restarted + timedelta(minutes=1), watching_since=restarted) == []
+    assert check(outbox_db, restarted + timedelta(minutes=11), watching_since=restarted) == [EventKind.NODE_OFFLINE] * 3
+
+
+def test_a_decommissioned_node_is_not_reported_offline_until_it_is_back_in_service(outbox_db):
+    from db.nodes import decommission_node, recommission_node
+
+    with outbox_db.write() as session:
+        decommission_node(session, "node-c", who="admin:ops", reason="removed with the old line", now=T0)
+    assert check(outbox_db, T0 + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE] * 2  # node-a, node-b
+    with outbox_db.session() as session:
+        assert {e.node_id for e in events_of_kind(session, EventKind.NODE_OFFLINE)} == {"node-a", "node-b"}
+    with outbox_db.write() as session:
+        recommission_node(session, "node-c")
+    assert check(outbox_db, T0 + timedelta(minutes=12)) == [EventKind.NODE_OFFLINE]  # silent since T0
+
+
+def test_every_new_baseline_gets_one_event_whoever_set_it(outbox_db):
+    from alerts.baseline_watch import check_baseline_changes
+    from db.baselines import set_active_baseline
+    from db.models import MeasurementKind
+    from tests.support.db_fixtures import store_sample
+
+    with outbox_db.write() as session:
+        first = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=1)
+        second = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=2)
+        set_active_baseline(session, "node-a", first.id, created_by="gateway", reason="commissioning", now=T0)
+        set_active_baseline(session, "node-a", second.id, created_by="operator:alice", reason="pipe repaired",
+                            now=T0 + timedelta(hours=1))
+    now = T0 + timedelta(hours=2)
+    with outbox_db.write() as session:
+        added = check_baseline_changes(session, SETTINGS, now=now)
+        assert check_baseline_changes(session, SETTINGS, now=now) == []  # one event per baseline row
+    assert [e.kind for e in added] == [EventKind.BASELINE_CHANGED] * 2
+    latest = added[-1].payload
+    assert latest["measurement_id"] == second.id and latest["previous_measurement_id"] == first.id
+    assert latest["created_by"] == "operator:alice" and latest["occurred_at"] == (T0 + timedelta(hours=1)).isoformat()
+    with outbox_db.write() as session:  # a month later, old baselines are not looked at again
+        assert check_baseline_changes(session, SETTINGS, now=T0 + timedelta(days=30)) == []

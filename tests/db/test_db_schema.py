@@ -1,0 +1,250 @@
+"""Specification of opening a database: pragmas, migrations to head, schema checks, locking."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from alembic import command
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
+from sqlalchemy import inspect, text
+from sqlalchemy.exc import StatementError
+
+from db.database import Database, open_database
+from db.errors import SchemaOutOfDate, StorageBusy
+from db.migrate import alembic_config, head_revision, upgrade_to_head
+from db.models import Base
+from db.nodes import get_node, upsert_node
+from db.sqlite_setup import PAGE_SIZE_BYTES
+from tests.support.db_fixtures import T0, node_info
+
+
+def _pragma(database: Database, name: str):
+    with database.session() as session:
+        return session.execute(text(f"PRAGMA {name}")).scalar_one()
+
+
+def test_new_sqlite_file_gets_wal_full_sync_fk_incremental_vacuum_and_large_pages(sqlite_db):
+    assert _pragma(sqlite_db, "journal_mode") == "wal"
+    assert _pragma(sqlite_db, "synchronous") == 2  # FULL
+    assert _pragma(sqlite_db, "foreign_keys") == 1
+    assert _pragma(sqlite_db, "auto_vacuum") == 2  # INCREMENTAL
+    assert _pragma(sqlite_db, "page_size") == PAGE_SIZE_BYTES
+    assert _pragma(sqlite_db, "busy_timeout") == 5000
+
+
+def test_reopening_keeps_the_file_format_and_reapplies_connection_pragmas(sqlite_url):
+    open_database(sqlite_url).dispose()
+    database = open_database(sqlite_url, busy_timeout_ms=1234)
+    try:
+        assert _pragma(database, "page_size") == PAGE_SIZE_BYTES
+        assert _pragma(database, "auto_vacuum") == 2
+        assert _pragma(database, "busy_timeout") == 1234
+        assert _pragma(database, "foreign_keys") == 1
+    finally:
+        database.dispose()
+
+
+def test_new_database_is_migrated_to_head(any_db):
+    assert any_db.schema_revision() == head_revision()
+
+
+def test_migrations_produce_exactly_the_schema_the_models_describe(any_db):
+    with any_db.engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True})
+        differences = compare_metadata(context, Base.metadata)
+    assert differences == []
+
+
+def test_read_only_open_of_an_empty_database_says_schema_out_of_date(sqlite_url):
+    with pytest.raises(SchemaOutOfDate, match=rf"empty .* needs {head_revision()}"):
+        open_database(sqlite_url, upgrade=False)
+
+
+def test_read_only_open_of_a_migrated_database_succeeds(sqlite_url):
+    open_database(sqlite_url).dispose()
+    database = open_database(sqlite_url, upgrade=False)
+    assert database.schema_revision() == head_revision()
+    database.dispose()
+
+
+def test_a_database_from_a_newer_release_is_refused(sqlite_url):
+    open_database(sqlite_url).dispose()
+    database = open_database(sqlite_url)
+    with database.write() as session:
+        session.execute(text("UPDATE alembic_version SET version_num = '9999'"))
+    database.dispose()
+    with pytest.raises(SchemaOutOfDate, match="9999") as raised:
+        open_database(sqlite_url, upgrade=False)
+    assert raised.value.current == "9999"
+    with pytest.raises(SchemaOutOfDate, match="at least as new"):
+        open_database(sqlite_url, upgrade=True)  # the gateway must not touch it either
+
+
+def test_postgres_read_only_open_checks_the_schema_too(postgres_url):
+    with pytest.raises(SchemaOutOfDate):
+        open_database(postgres_url, upgrade=False)
+    open_database(postgres_url).dispose()
+    open_database(postgres_url, upgrade=False).dispose()
+
+
+def test_timestamps_come_back_timezone_aware_utc(any_db):
+    seen = datetime(2026, 3, 1, 13, 30, tzinfo=timezone(timedelta(hours=1)))
+    with any_db.write() as session:
+        upsert_node(session, node_info("node-tz"), seen_at=seen)
+    with any_db.session() as session:
+        node = get_node(session, "node-tz")
+        assert node.last_seen_at == seen
+        assert node.last_seen_at.tzinfo is not None
+        assert node.last_seen_at.utcoffset() == timedelta(0)
+
+
+def test_naive_datetimes_are_rejected(any_db):
+    with pytest.raises(StatementError, match="naive datetime") as raised:
+        with any_db.write() as session:
+            upsert_node(session, node_info("node-naive"), seen_at=datetime(2026, 3, 1, 12, 0))
+    assert isinstance(raised.value.orig, ValueError)
+
+
+def test_write_takes_the_sqlite_write_lock_at_begin(sqlite_url):
+    """Even a write() that starts with a SELECT holds the lock, so a second writer waits at
+    BEGIN (and gives up as StorageBusy) instead of failing half-way on a lock upgrade."""
+    holder = open_database(sqlite_url)
+    contender = open_database(sqlite_url, busy_timeout_ms=100)
+    locked = threading.Event()
+    release = threading.Event()
+
+    def hold_write_lock() -> None:
+        with holder.write() as session:
+            session.execute(text("SELECT 1"))  # the session's first statement: BEGIN IMMEDIATE
+            locked.set()
+            release.wait(timeout=10)
+
+    thread = threading.Thread(target=hold_write_lock)
+    thread.start()
+    try:
+        assert locked.wait(timeout=10)
+        with pytest.raises(StorageBusy):
+            with contender.write() as session:
+                session.execute(text("SELECT count(*) FROM nodes"))
+        with contender.session() as session:  # WAL: readers are not blocked by the writer
+            assert session.execute(text("SELECT count(*) FROM nodes")).scalar_one() == 0
+    finally:
+        release.set()
+        thread.join(timeout=10)
+        holder.dispose()
+        contender.dispose()
+
+
+def test_write_commits_on_success_and_rolls_back_on_error(any_db):
+    with any_db.write() as session:
+        upsert_node(session, node_info("kept"), seen_at=T0)
+    with pytest.raises(RuntimeError):
+        with any_db.write() as session:
+            upsert_node(session, node_info("discarded"), seen_at=T0)
+            session.flush()
+            raise RuntimeError("boom")
+    with any_db.session() as session:
+        assert [n for (n,) in session.execute(text("SELECT node_id FROM nodes ORDER BY node_id"))] == ["kept"]
+
+
+def test_in_memory_sqlite_is_refused():
+    with pytest.raises(ValueError, match="file URL"):
+        open_database("sqlite://")
+
+
+@pytest.mark.e2e
+def test_an_installed_copy_of_the_package_migrates_without_the_repository(tmp_path):
+    """What a wheel ships (the .py files and script.py.mako) is all migrating needs."""
+    repo_db = Path(__file__).resolve().parents[2] / "db"
+    site = tmp_path / "site-packages"
+    for source in [*repo_db.rglob("*.py"), *repo_db.rglob("*.mako")]:
+        target = site / "db" / source.relative_to(repo_db)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+    workdir = tmp_path / "elsewhere"
+    workdir.mkdir()
+    url = f"sqlite:///{tmp_path / 'installed.db'}"
+    program = (
+        "import db.migrate, sys; from db.database import open_database; "
+        "d = open_database(sys.argv[1]); print(db.migrate.__file__); print(d.schema_revision())"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", program, url],
+        cwd=workdir,
+        env={**os.environ, "PYTHONPATH": str(site)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    module_file, revision = result.stdout.split()
+    assert module_file.startswith(str(site))
+    assert revision == head_revision()
+
+
+def test_a_database_of_the_first_release_upgrades_keeping_its_nodes(sqlite_url):
+    from sqlalchemy import create_engine
+
+    engine = create_engine(sqlite_url)
+    with engine.connect() as connection:  # the schema as release 0001 left it, with a node in it
+        command.upgrade(alembic_config(connection), "0001")
+        connection.execute(text(
+            "INSERT INTO nodes (node_id, port_url, firmware, protocol_version, n_channels, fs_hz, geometry,"
+            " first_seen_at, last_seen_at, online, error_counters, state)"
+            " VALUES ('old-node', 'serial:///dev/ttyUSB0', '1.0.0', 2, 8, 2000000.0, '{}',"
+            " '2026-11-01 00:00:00.000000', '2026-11-02 00:00:00.000000', 1, '{}', 'damage')"
+        ))
+        connection.commit()
+    engine.dispose()
+    database = open_database(sqlite_url)  # the gateway's open: upgrades to head
+    try:
+        assert database.schema_revision() == head_revision() != "0001"
+        with database.session() as session:
+            node = get_node(session, "old-node")
+            assert node.state.value == "damage" and node.decommissioned_at is None and node.label is None
+    finally:
+        database.dispose()
+
+
+def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
+    with any_db.engine.connect() as connection:
+        command.downgrade(alembic_config(connection), "base")
+        connection.commit()
+    assert any_db.schema_revision() is None
+    with any_db.session() as session:
+        tables = set(inspect(session.connection()).get_table_names()) - {"alembic_version"}
+    assert tables == set()
+    upgrade_to_head(any_db.engine)
+    assert any_db.schema_revision() == head_revision()
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "db", *args], capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[2]
+    )
+
+
+@pytest.mark.e2e
+def test_command_line_upgrades_and_reports_the_revision(sqlite_url):
+    assert _cli("current", "--url", sqlite_url).stdout.strip() == "empty"
+    assert _cli("upgrade", "--url", sqlite_url).returncode == 0
+    assert _cli("current", "--url", sqlite_url).stdout.strip() == head_revision()
+
+
+@pytest.mark.e2e
+def test_command_line_reports_a_storage_error_in_one_line_with_exit_code_2(sqlite_url):
+    open_database(sqlite_url).dispose()
+    database = open_database(sqlite_url)
+    with database.write() as session:
+        session.execute(text("UPDATE alembic_version SET version_num = 'future'"))
+    database.dispose()
+    result = _cli("upgrade", "--url", sqlite_url)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "future" in result.stderr and "Traceback" not in result.stderr
