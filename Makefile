@@ -27,6 +27,7 @@ test-fast: $(STAMP)
 # Lint and type gates (part of `make test`).
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 bench: $(STAMP)
 	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done

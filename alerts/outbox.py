@@ -15,9 +15,9 @@ import uuid
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import CursorResult, Result, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
@@ -91,7 +91,7 @@ def claim(session: Session, item: OutboxEvent, *, now: datetime, lease_s: float)
         .values(attempts=DeliveryRow.attempts + 1, next_attempt_at=now + timedelta(seconds=lease_s))
         .execution_options(synchronize_session=False)
     )
-    return result.rowcount == 1
+    return _affected(result) == 1
 
 
 def mark_delivered(session: Session, delivery_id: int) -> bool:
@@ -102,7 +102,7 @@ def mark_delivered(session: Session, delivery_id: int) -> bool:
         .values(status=DeliveryStatus.DELIVERED, next_attempt_at=None, last_error=None)
         .execution_options(synchronize_session=False)
     )
-    return result.rowcount == 1
+    return _affected(result) == 1
 
 
 def mark_failed(session: Session, delivery_id: int, error: str, *, retry_at: datetime | None) -> bool:
@@ -118,7 +118,7 @@ def mark_failed(session: Session, delivery_id: int, error: str, *, retry_at: dat
         .values(**values)
         .execution_options(synchronize_session=False)
     )
-    return result.rowcount == 1
+    return _affected(result) == 1
 
 
 def kill_pending(session: Session, sink: str, reason: str) -> int:
@@ -129,7 +129,7 @@ def kill_pending(session: Session, sink: str, reason: str) -> int:
         .values(status=DeliveryStatus.DEAD, next_attempt_at=None, last_error=reason[:2000])
         .execution_options(synchronize_session=False)
     )
-    return result.rowcount
+    return _affected(result)
 
 
 def add_event_once(session: Session, event: EventInput, *, node_id: str | None, now: datetime | None = None) -> bool:
@@ -244,3 +244,8 @@ def _aware(value: datetime | str) -> datetime:
     if isinstance(value, str):
         value = datetime.fromisoformat(value)
     return value if value.tzinfo is not None else value.replace(tzinfo=UTC)
+
+
+def _affected(result: Result[Any]) -> int:
+    """Rows an UPDATE matched: its result is a CursorResult, which the ORM's typing does not say."""
+    return cast(CursorResult[Any], result).rowcount

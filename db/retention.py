@@ -13,7 +13,7 @@ from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 
 from sqlalchemy import select, update
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
@@ -49,7 +49,7 @@ def prune_traces(
     cutoff = now - older_than
     ever_baseline = select(BaselineRow.measurement_id)
     pruned = 0
-    engine: Engine | None = None
+    engine: Engine | Connection | None = None
     for _ in range(max_batches):
         with session_factory() as session:
             engine = session.get_bind()
@@ -75,7 +75,7 @@ def prune_traces(
         if len(ids) < batch_size:
             break
     if pruned and engine is not None and engine.dialect.name == "sqlite":
-        reclaim_free_pages(engine)
+        reclaim_free_pages(engine if isinstance(engine, Engine) else engine.engine)
     return pruned
 
 
@@ -91,6 +91,7 @@ def reclaim_free_pages(
         pooled = engine.raw_connection()
         try:
             connection = pooled.driver_connection
+            assert connection is not None  # a pooled connection always has its DBAPI connection
             # sqlite3's execute() steps a statement once, which frees only one page;
             # executescript() runs it to completion, in its own autocommit transaction
             # (our connections have isolation_level=None and none is open between uses).

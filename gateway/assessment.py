@@ -5,6 +5,7 @@ Pure apart from reading baseline traces through the database session it is given
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -100,7 +101,7 @@ def joins_library(
 def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float | None) -> AssessSettings:
     """The node's imaging settings; the gateway's damage threshold is also the detection threshold."""
     im = node.imaging
-    extra = {} if im.max_residual is None else {"max_residual": im.max_residual}
+    extra: dict[str, Any] = {} if im.max_residual is None else {"max_residual": im.max_residual}
     return AssessSettings(
         method=im.method,
         feature=im.feature,

@@ -86,7 +86,8 @@ def threshold_for(settings: ThresholdSettings, calibration_peaks: list[float], f
     a few minutes only, and the compensation leaves a residual that grows with the daily swing.
     """
     if settings.mode == "absolute":
-        return float(settings.absolute)
+        assert settings.absolute is not None  # the settings' validator requires it in this mode
+        return settings.absolute
     if len(calibration_peaks) < settings.calibration_count:
         return None
     calibrated = calibrated_threshold(calibration_peaks[: settings.calibration_count], settings.false_alarm_rate)

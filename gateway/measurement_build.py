@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,7 @@ class NodeGeometryView:
 
 
 def effective_geometry(info: InfoReply, override: GeometryOverride) -> NodeGeometryView:
-    fields = {
+    fields: dict[str, Any] = {
         "rx_angles_deg": list(info.rx_angles_deg),
         "tx_angles_deg": list(info.tx_angles_deg),
         "tx_rx_distance_mm": info.tx_rx_distance_mm,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import random
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -348,7 +349,7 @@ class NodeClient:
     def _bulk(self, make_request, meta_type: type):
         """Read a chunked transfer; re-request only missing chunks; verify the whole-transfer CRC."""
         rerequested = 0
-        first: Message | None = None
+        first: Any = None  # the transfer's first meta reply (ReadTracesMeta or ReadDiMeta, both carry boot_id)
         crc_failures = 0
         wanted: tuple[int, ...] = ()
         assembler: BulkAssembler | None = None

@@ -13,12 +13,18 @@ import serial
 _POLL_S = 0.02
 
 
-try:  # POSIX: pyserial's flush()/reset_input_buffer() call termios, whose error is not an OSError
-    from termios import error as _TermiosError
-except ImportError:  # pragma: no cover - Windows
-    _TermiosError = OSError
+def _termios_error() -> type[Exception]:
+    """POSIX: pyserial's flush()/reset_input_buffer() call termios, whose error is not an OSError."""
+    try:
+        from termios import error
+    except ImportError:  # pragma: no cover - Windows
+        return OSError
+    return error
+
+
 # What a port that vanished (unplugged USB-UART, closed pty, dropped socket) raises.
-PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, _TermiosError)
+PORT_ERRORS: tuple[type[Exception], ...] = (serial.SerialException, OSError, _termios_error())
+_OPEN_ERRORS: tuple[type[Exception], ...] = (*PORT_ERRORS, ValueError)  # ValueError: a malformed port URL
 
 class NodeClientError(Exception):
     """Base of every error the gateway's node client raises."""
@@ -46,14 +52,14 @@ class SerialTransport:
             kwargs["exclusive"] = True
         try:
             self._port = serial.serial_for_url(self.url, **kwargs)
-        except (*PORT_ERRORS, ValueError) as exc:
+        except _OPEN_ERRORS as exc:
             self._port = None
             raise PortVanished(f"cannot open {self.url}: {exc}") from exc
 
     def close(self) -> None:
         port, self._port = self._port, None
         if port is not None:
-            with contextlib.suppress(PORT_ERRORS):  # a port that already vanished has nothing left to release
+            with contextlib.suppress(*PORT_ERRORS):  # a port that already vanished has nothing left to release
                 port.close()
 
     def reopen(self) -> None:

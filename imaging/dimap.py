@@ -130,8 +130,8 @@ def windowed_energy(residual: np.ndarray, window_samples: int, k_min: int, n_sta
     suffix = np.cumsum(blocks[:, :, ::-1], axis=2)[:, :, ::-1].reshape(n_rx, -1)
     prefix = np.zeros_like(blocks)
     np.cumsum(blocks[:, :, :-1], axis=2, out=prefix[:, :, 1:])
-    prefix = prefix.reshape(n_rx, -1)
-    return suffix[:, :n_starts] + prefix[:, w : w + n_starts]
+    flat_prefix = prefix.reshape(n_rx, -1)
+    return suffix[:, :n_starts] + flat_prefix[:, w : w + n_starts]
 
 
 def compute_di_map(

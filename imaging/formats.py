@@ -7,6 +7,7 @@ import json
 import math
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +51,7 @@ def measurement_from_mapping(fields: dict, source: str) -> Measurement:
     missing = [k for k in REQUIRED_KEYS if k not in fields]
     if missing:
         raise MeasurementFileError(f"{source}: missing required key(s): {', '.join(missing)}")
-    kwargs = {k: _scalar(k, fields[k]) for k in SCALAR_KEYS if k in fields}
+    kwargs: dict[str, Any] = {k: _scalar(k, fields[k]) for k in SCALAR_KEYS if k in fields}
     cycles = kwargs["cycles"]
     if not (math.isfinite(cycles) and cycles == int(cycles)):
         raise MeasurementFileError(f"{source}: cycles must be an integer, got {cycles!r}")
@@ -93,7 +94,8 @@ def measurement_fields(m: Measurement) -> dict:
 def npz_bytes(m: Measurement) -> bytes:
     """The measurement as .npz file contents."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in measurement_fields(m).items()})
+    arrays: dict[str, Any] = {k: np.asarray(v) for k, v in measurement_fields(m).items()}
+    np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 

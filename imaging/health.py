@@ -23,13 +23,16 @@ MAX_AMPLITUDE_RATIO = 2.0
 MAX_DELAY_PERIODS = 0.25  # timing change (relative to the median channel) above a quarter period
 
 
+FaultKind = Literal["no_signal", "amplitude", "timing"]
+
+
 @dataclass(frozen=True)
 class SensorFault:
     """One receiver judged faulty: ``kind`` is "no_signal", "amplitude" or "timing"."""
 
     rx_index: int
     rx_angle_deg: float
-    kind: Literal["no_signal", "amplitude", "timing"]
+    kind: FaultKind
     amplitude_ratio: float
     delay_s: float
 
@@ -61,6 +64,7 @@ def check_receivers(
     period_s = 1.0 / current.excitation_hz
     faults = []
     for m in range(current.n_rx):
+        kind: FaultKind
         if ratio[m] < 0.1:
             kind = "no_signal"
         elif not min_ratio <= ratio[m] <= max_ratio:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
+from typing import Protocol
 
 import matplotlib
 
@@ -10,12 +11,20 @@ matplotlib.use("Agg")  # headless: no display on gateways or servers
 import matplotlib.pyplot as plt
 
 from imaging.dimap import DIMap
-from imaging.localize import Estimate
+
+
+class MapMark(Protocol):
+    """A position to mark on the map (an Estimate, a Defect)."""
+
+    @property
+    def axial_mm(self) -> float: ...
+    @property
+    def angle_deg(self) -> float: ...
 
 
 def heatmap_png(
     di_map: DIMap,
-    estimates: Sequence[Estimate] = (),
+    estimates: Sequence[MapMark] = (),
     *,
     truth: Sequence[tuple[float, float]] = (),
     title: str | None = None,

@@ -326,8 +326,7 @@ def path_model_for(
             raise MultipathError(f"wall_mm must be in (0, OD/2), got {wall_mm}")
         circumference -= math.pi * wall_mm
     wavelength = baseline.velocity_m_s * MM_PER_M / baseline.excitation_hz
-    known = model_ends and baseline.pipe_length_mm is not None and baseline.tx_axial_mm is not None
-    if not known:
+    if not model_ends or baseline.pipe_length_mm is None or baseline.tx_axial_mm is None:
         return PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization, wraps=wraps)
     # Quantised so every baseline of a node gives the same model, hence the same cached tables.
     near, far = (round(r / REFLECTION_QUANTUM) * REFLECTION_QUANTUM for r in end_reflection_coefficients(baseline))
@@ -335,8 +334,8 @@ def path_model_for(
         baseline.tx_rx_distance_mm,
         circumference,
         wavelength,
-        near_end_mm=-float(baseline.tx_axial_mm),
-        far_end_mm=float(baseline.pipe_length_mm) - float(baseline.tx_axial_mm),
+        near_end_mm=-baseline.tx_axial_mm,
+        far_end_mm=baseline.pipe_length_mm - baseline.tx_axial_mm,
         near_reflection=near,
         far_reflection=far,
         polarization=polarization,

@@ -119,7 +119,7 @@ def wrap_offsets_mm(arc_mm: np.ndarray, circumference_mm: float, wraps: int) -> 
     return legs
 
 
-def path_weight(factor: float, dz_mm: np.ndarray, r_mm: np.ndarray, model: PathModel) -> np.ndarray:
+def path_weight(factor: float | np.ndarray, dz_mm: np.ndarray, r_mm: np.ndarray, model: PathModel) -> np.ndarray:
     """Expected amplitude per unit strength: factor * sqrt(lambda / max(r, lambda/2)) * |cos(arrival)|."""
     lam = model.wavelength_mm
     w = factor * np.sqrt(lam / np.maximum(r_mm, 0.5 * lam))

@@ -183,7 +183,8 @@ class DefectSpec(_Strict):
         # An omitted or empty size means "the paper's size" for that kind; a non-empty table is
         # validated by the NotchSize | MassSize union (their keys are disjoint).
         if isinstance(data, dict) and not data.get("size"):
-            size_model = {"notch": NotchSize, "mass": MassSize}.get(data.get("kind"))
+            kind = data.get("kind")
+            size_model = {"notch": NotchSize, "mass": MassSize}.get(kind) if isinstance(kind, str) else None
             if size_model is not None:
                 data = {**data, "size": size_model()}
         return data

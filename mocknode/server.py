@@ -47,7 +47,7 @@ class _PtyPort:
     def fileno(self) -> int:
         return self.master
 
-    def read(self) -> bytes | None:
+    def read(self) -> bytes:
         try:
             return os.read(self.master, 65536)
         except BlockingIOError:
@@ -154,7 +154,7 @@ class NodeRunner(threading.Thread):
         self._rng = np.random.default_rng(scenario.seed + 7919)
         self._changed = threading.Condition()
         self.generation = 0  # +1 every time a (new) port opens
-        self.url: str | None = None
+        self.url = ""  # set by _open_port below, before anyone can read it
         self.reboots = 0
         self._port: _PtyPort | _TcpPort | None = None
         self._line_free_at = 0.0
@@ -201,10 +201,13 @@ class NodeRunner(threading.Thread):
                     decoder = FrameDecoder()
                     next_disconnect = self._next_disconnect_at()
                     continue
-                ready, _, _ = select.select([self._port], [], [], _POLL_S)
+                port = self._port
+                if port is None:  # closed under us (stop or disconnect fault)
+                    break
+                ready, _, _ = select.select([port], [], [], _POLL_S)
                 if not ready:
                     continue
-                for item in decoder.feed(self._port.read()):
+                for item in decoder.feed(port.read()):
                     if isinstance(item, FrameError):
                         self.node.note_frame_error(isinstance(item, FrameCrcError))
                         continue
@@ -273,8 +276,11 @@ class NodeRunner(threading.Thread):
 
     def _send(self, data: bytes, faults: bool = True) -> None:
         data = self._inject(data) if faults else data
+        port = self._port
+        if port is None:  # the port was closed (a disconnect fault): the reply is lost, as on a real line
+            return
         if not self.pace:
-            self._port.send(data, self.stop_event)
+            port.send(data, self.stop_event)
             return
         for i in range(0, len(data), _WRITE_SLICE_BYTES):
             piece = data[i : i + _WRITE_SLICE_BYTES]
@@ -282,7 +288,7 @@ class NodeRunner(threading.Thread):
             self._line_free_at = max(self._line_free_at, now)
             if self.stop_event.wait(max(0.0, self._line_free_at - now)):
                 return
-            if not self._port.send(piece, self.stop_event):
+            if not port.send(piece, self.stop_event):
                 return
             self._line_free_at += len(piece) / self.bytes_per_s
 

@@ -10,7 +10,7 @@ import dataclasses
 import enum
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 NODE_ID_BYTES = 32
 MAX_ERROR_DETAIL_BYTES = 64
@@ -122,6 +122,8 @@ class _ChunkListRequest(Message):
     Subclasses declare their fixed fields and ``chunks`` last; ``_STRUCT`` covers the fixed ones.
     """
 
+    chunks: tuple[int, ...]
+
     def _fixed(self) -> tuple:
         return super()._fixed()[:-1]
 
@@ -131,7 +133,8 @@ class _ChunkListRequest(Message):
     @classmethod
     def decode(cls, payload: bytes):
         chunks = _unpack_chunk_list(cls, payload, cls._STRUCT.size)
-        return cls(*cls._STRUCT.unpack_from(payload), chunks=chunks)
+        fields: tuple[Any, ...] = (*cls._STRUCT.unpack_from(payload), chunks)
+        return cls(*fields)
 
 
 # ---------------------------------------------------------------- INFO (capability exchange)
@@ -203,7 +206,8 @@ class InfoReply(Message):
             node_id = fixed[0].rstrip(b"\x00").decode("utf-8")
         except UnicodeDecodeError as exc:
             raise MessageError(f"node_id is not UTF-8: {exc}") from exc
-        return cls(node_id, *fixed[1:], tx_angles_deg=angles[:n_tx], rx_angles_deg=angles[n_tx:])
+        fields: tuple[Any, ...] = (node_id, *fixed[1:], angles[:n_tx], angles[n_tx:])  # the angle lists come last
+        return cls(*fields)
 
 
 # ---------------------------------------------------------------- STATUS

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -43,7 +43,8 @@ def get_settings(request: Request) -> ApiSettings:
 
 async def get_database(request: Request) -> Database:
     gate: DatabaseGate = request.app.state.database
-    return gate.opened() or await run_in_threadpool(gate.get)
+    opened = gate.opened()
+    return opened if opened is not None else await run_in_threadpool(gate.get)
 
 
 DatabaseDep = Annotated[Database, Depends(get_database)]
@@ -133,7 +134,7 @@ async def current_caller(
     return caller
 
 
-def require(role: Role) -> Callable[[Caller], Caller]:
+def require(role: Role) -> Callable[[Caller], Awaitable[Caller]]:
     """A dependency that admits callers whose role is at least ``role``."""
 
     async def check(caller: Annotated[Caller, Depends(current_caller)]) -> Caller:

@@ -44,7 +44,7 @@ def _estimate(session: Session, row: DiMapRow, di_map: DIMap) -> Estimate | None
     """The gateway's map: the defect estimate stored with the verdict; the node's map: its peak."""
     if row.source == MapSource.GATEWAY:
         detection = detection_for(session, row.measurement_id)
-        if detection is None or detection.axial_mm is None or detection.angle_deg is None:
+        if detection is None or detection.axial_mm is None or detection.angle_deg is None or detection.peak_di is None:
             return None
         return Estimate(detection.axial_mm, detection.angle_deg, detection.peak_di)
     pixels = di_map.pixels

@@ -65,10 +65,13 @@ def analyze(
     except (MeasurementError, BaselineMismatch, SettingsError, MultipathError) as exc:
         fail(str(exc))
     if png is not None:
-        from imaging.heatmap import heatmap_png
+        from imaging.heatmap import MapMark, heatmap_png
 
+        if result.di_map is None or result.peak is None:
+            fail(f"no map to draw: {result.no_valid_baseline.reason if result.no_valid_baseline else 'no map'}")
         try:
-            png.write_bytes(heatmap_png(result.di_map, result.defects or [result.peak]))
+            marks: list[MapMark] = [*result.defects] or [result.peak]
+            png.write_bytes(heatmap_png(result.di_map, marks))
         except OSError as exc:
             fail(f"cannot write {png}: {exc.strerror or exc}")
     if as_json:

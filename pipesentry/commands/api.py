@@ -1,7 +1,7 @@
 """`pipesentry api`: serve the operator API and dashboard with uvicorn."""
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -27,7 +27,7 @@ def api(
     from service.app import create_app
     from service.settings import ApiSettings
 
-    overrides = {k: v for k, v in {"database_url": database_url, "host": host, "port": port}.items() if v is not None}
+    overrides: dict[str, Any] = {k: v for k, v in {"database_url": database_url, "host": host, "port": port}.items() if v is not None}
     try:
         settings = ApiSettings(**overrides)
     except ValidationError as exc:

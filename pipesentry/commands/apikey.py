@@ -4,11 +4,14 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from pipesentry.errors import fail
+
+if TYPE_CHECKING:  # imported lazily at run time: the CLI's --help stays fast
+    from db.database import Database
 
 apikey_app = typer.Typer(help="Create, list and revoke API keys of the operator API.", no_args_is_help=True,
                          add_completion=False, pretty_exceptions_enable=False)
@@ -20,7 +23,7 @@ DatabaseUrl = Annotated[
 
 
 @contextmanager
-def _database(url: str | None) -> Iterator[object]:
+def _database(url: str | None) -> Iterator[Database]:
     from db.errors import StorageError
     from service.database import DatabaseGate
     from service.settings import ApiSettings
@@ -91,4 +94,4 @@ def revoke(
                 revoked_at = row.revoked_at
         except NotFound as exc:
             fail(str(exc))
-    typer.echo(f"key {key_id} revoked at {revoked_at.isoformat()}")
+    typer.echo(f"key {key_id} revoked at {revoked_at.isoformat() if revoked_at else '?'}")
