@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from alerts.config import AlertingSettings
 from alerts.events import baseline_changed_event
-from alerts.outbox import add_event_once
+from db.measurements import add_event_once
 from db.models import BaselineRow, NodeRow
 from db.records import EventInput
 

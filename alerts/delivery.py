@@ -36,7 +36,6 @@ from alerts.mqtt import MqttTransport
 from alerts.outages import check_outages
 from alerts.outbox import (
     OutboxEvent,
-    add_event_once,
     claim,
     events_of_kind,
     is_due,
@@ -50,6 +49,7 @@ from alerts.webhook import WebhookTransport
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
+from db.measurements import add_event_once
 
 log = logging.getLogger("pipesentry.alerts")
 

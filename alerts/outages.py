@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from alerts.config import AlertingSettings
 from alerts.events import OUTAGE_KINDS, EventKind, node_offline_event, node_online_event
-from alerts.outbox import add_event_once
+from db.measurements import add_event_once
 from db.models import EventRow
 from db.nodes import list_nodes
 from db.records import EventInput

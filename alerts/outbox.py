@@ -21,9 +21,7 @@ from sqlalchemy import CursorResult, Result, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
-from db.measurements import add_event
 from db.models import DeliveryRow, DeliveryStatus, EventRow, Severity
-from db.records import EventInput
 
 
 @dataclass(frozen=True)
@@ -130,15 +128,6 @@ def kill_pending(session: Session, sink: str, reason: str) -> int:
         .execution_options(synchronize_session=False)
     )
     return _affected(result)
-
-
-def add_event_once(session: Session, event: EventInput, *, node_id: str | None, now: datetime | None = None) -> bool:
-    """Add ``event`` to the outbox unless an event with its (stable) id is already there."""
-    if session.get(EventRow, event.id) is not None:
-        return False
-    add_event(session, event, node_id=node_id, now=now)
-    session.flush()
-    return True
 
 
 def latest_delivered(session: Session, sink: str, kinds: Iterable[str]) -> list[OutboxEvent]:

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session
 
 from alerts.config import AlertingSettings
 from alerts.events import EventKind, sensor_fault_cleared_event, sensor_fault_event
-from alerts.outbox import add_event_once
+from db.measurements import add_event_once
 from db.models import DetectionRow, EventRow
 from db.records import EventInput
 

@@ -171,6 +171,15 @@ def add_event(session: Session, event: EventInput, *, node_id: str | None, now: 
     return row
 
 
+def add_event_once(session: Session, event: EventInput, *, node_id: str | None, now: datetime | None = None) -> bool:
+    """Add ``event`` to the outbox unless an event with its (stable) id is already there."""
+    if session.get(EventRow, event.id) is not None:
+        return False
+    add_event(session, event, node_id=node_id, now=now)
+    session.flush()
+    return True
+
+
 def get_measurement(session: Session, measurement_id: int) -> MeasurementRow:
     """The measurement with this id; raises :class:`NotFound`."""
     row = session.get(MeasurementRow, measurement_id)

@@ -8,7 +8,6 @@ import pytest
 from alerts.config import AlertingSettings
 from alerts.events import STATE_KINDS, state_change_event
 from alerts.outbox import (
-    add_event_once,
     claim,
     delivery_counts,
     is_due,
@@ -18,6 +17,7 @@ from alerts.outbox import (
     pending_heads,
 )
 from db.clock import utc_now
+from db.measurements import add_event_once
 from db.models import DeliveryStatus
 from db.nodes import upsert_node
 from tests.support.db_fixtures import T0, node_info
