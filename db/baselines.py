@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 from db.clock import utc_now
 from db.errors import BaselineError
 from db.measurements import get_measurement
-from db.models import BaselineRow, MeasurementRow
+from db.models import BaselineRow, MeasurementKind, MeasurementRow
 from db.nodes import get_node
 
 
@@ -77,3 +77,22 @@ def baseline_history(session: Session, node_id: str) -> Sequence[BaselineRow]:
         .where(BaselineRow.node_id == node_id)
         .order_by(BaselineRow.created_at.desc(), BaselineRow.id.desc())
     ).all()
+
+
+def library_baseline_ids(session: Session, node_id: str, size: int) -> list[int]:
+    """The node's baseline library for optimal baseline selection: the active baseline first, then
+    its most recent other baseline measurements whose traces are kept, at most ``size`` in all."""
+    active = active_baseline(session, node_id)
+    others = session.scalars(
+        select(MeasurementRow.id)
+        .where(
+            MeasurementRow.node_id == node_id,
+            MeasurementRow.kind == MeasurementKind.BASELINE,
+            MeasurementRow.traces_pruned_at.is_(None),
+        )
+        .order_by(MeasurementRow.id.desc())
+        .limit(size)
+    ).all()
+    if active is None:
+        return list(others[:size])
+    return ([active.measurement_id] + [i for i in others if i != active.measurement_id])[:size]

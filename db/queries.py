@@ -1,10 +1,12 @@
-"""Read-side queries used by the API and the gateway: history, latest results, pages."""
+"""Read-side queries used by the API and the gateway: history, latest results, pages, and what a
+node's next verdict depends on (calibration peaks, recent verdicts, recent sensor faults)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
 from datetime import datetime
+from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from db.models import DetectionRow, DiMapRow, MeasurementKind, MeasurementRow, StateChangeRow
@@ -85,3 +87,52 @@ def di_maps_for(session: Session, measurement_id: int) -> Sequence[DiMapRow]:
     return session.scalars(
         select(DiMapRow).where(DiMapRow.measurement_id == measurement_id).order_by(DiMapRow.id)
     ).all()
+
+
+def baseline_count(session: Session, node_id: str) -> int:
+    """How many of the node's measurements are stored as baselines (commissioning and library)."""
+    statement = select(func.count()).where(
+        MeasurementRow.node_id == node_id, MeasurementRow.kind == MeasurementKind.BASELINE
+    )
+    return int(session.scalar(statement) or 0)
+
+
+def calibration_peaks(session: Session, node_id: str, *, since: datetime, limit: int) -> list[float]:
+    """The first ``limit`` peak DIs stored since ``since`` without a threshold (calibration readings), oldest first."""
+    rows = session.scalars(
+        select(DetectionRow.peak_di)
+        .where(
+            DetectionRow.node_id == node_id,
+            DetectionRow.created_at >= since,
+            DetectionRow.threshold.is_(None),
+            DetectionRow.peak_di.is_not(None),
+        )
+        .order_by(DetectionRow.id)
+        .limit(limit)
+    ).all()
+    return [float(p) for p in rows if p is not None]
+
+
+def recent_verdicts(session: Session, node_id: str, *, limit: int) -> list[tuple[float, float]]:
+    """(peak DI, threshold) of the node's last ``limit`` flagged readings (both set), newest first."""
+    rows = session.execute(
+        select(DetectionRow.peak_di, DetectionRow.threshold)
+        .where(
+            DetectionRow.node_id == node_id,
+            DetectionRow.threshold.is_not(None),
+            DetectionRow.peak_di.is_not(None),
+        )
+        .order_by(DetectionRow.id.desc())
+        .limit(limit)
+    ).all()
+    return [(float(peak), float(threshold)) for peak, threshold in rows]
+
+
+def recent_sensor_faults(
+    session: Session, node_id: str, *, limit: int, exclude_measurement_id: int | None = None
+) -> list[list[Any] | None]:
+    """``detections.sensor_faults`` of the node's last ``limit`` verdicts, newest first (None: none stored)."""
+    statement = select(DetectionRow.sensor_faults).where(DetectionRow.node_id == node_id)
+    if exclude_measurement_id is not None:
+        statement = statement.where(DetectionRow.measurement_id != exclude_measurement_id)
+    return list(session.scalars(statement.order_by(DetectionRow.id.desc()).limit(limit)).all())

@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 import uuid
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
-from db.models import MapSource, NodeState, Severity
+from db.models import MapSource, MeasurementKind, NodeState, Severity
 
 
 class NodeGeometry(BaseModel):
@@ -117,3 +119,32 @@ class EventInput:
     payload: dict[str, Any]
     sinks: tuple[str, ...] = ()
     id: uuid.UUID = field(default_factory=uuid.uuid4)
+
+
+@dataclass(frozen=True)
+class AcquisitionInput:
+    """One acquisition as the node sent it: raw ADC codes int16 [n_channels, n_samples] and how they were taken."""
+
+    acquired_at: datetime
+    node_measurement_id: int
+    codes: np.ndarray
+    volts_per_code: float
+    fs_hz: float
+    t0_s: float
+    averaging: int
+    excitation_hz: float
+    cycles: int
+    temperature_c: float | None = None
+
+
+@dataclass(frozen=True)
+class CycleRecord:
+    """Everything one gateway cycle stores, in one transaction (``db.cycles.store_cycle``)."""
+
+    acquisition: AcquisitionInput
+    kind: MeasurementKind
+    error_counters: Mapping[str, int]  # the node's and the gateway's counters after this cycle
+    di_maps: Sequence[DiMapInput] = ()
+    detection: DetectionInput | None = None
+    state_change: StateChangeInput | None = None
+    activate_baseline: str | None = None  # the reason, when the record becomes the node's active baseline
