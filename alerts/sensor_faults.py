@@ -27,7 +27,8 @@ from sqlalchemy.orm import Session
 from alerts.config import AlertingSettings
 from alerts.events import EventKind, sensor_fault_cleared_event, sensor_fault_event
 from db.measurements import add_event_once
-from db.models import DetectionRow, EventRow
+from db.models import EventRow
+from db.queries import recent_sensor_faults
 from db.records import EventInput
 
 
@@ -69,6 +70,79 @@ class OpenFault:
     measurement_id: int | None
 
 
+@dataclass(frozen=True)
+class SensorFaultHistory:
+    """What a node's next sensor-fault decision depends on, read before its measurement is stored."""
+
+    count: int  # consecutive measurements to raise or clear (``AlertingSettings.sensor_fault_count``)
+    earlier: tuple[dict[int, dict[str, Any]], ...]  # faulty receivers of the last count - 1 verdicts, oldest first
+    open_faults: dict[int, OpenFault]
+
+
+@dataclass(frozen=True)
+class SensorFaultChange:
+    """The receivers whose alert a measurement raises or clears, with what their events need."""
+
+    raised: tuple[dict[str, Any], ...] = ()  # this measurement's fault of each receiver that raises
+    cleared: tuple[OpenFault, ...] = ()  # the open alert of each receiver that clears
+    faulty_after: tuple[int, ...] = ()  # receivers with an open alert once this measurement is stored
+    consecutive: int = 0
+
+    def __bool__(self) -> bool:
+        return bool(self.raised or self.cleared)
+
+
+def sensor_fault_history(
+    session: Session, node_id: str, count: int, *, exclude_measurement_id: int | None = None
+) -> SensorFaultHistory:
+    """The node's recent verdicts and open sensor-fault alerts (``exclude_measurement_id``: one already stored)."""
+    earlier = recent_sensor_faults(session, node_id, limit=count - 1, exclude_measurement_id=exclude_measurement_id)
+    return SensorFaultHistory(count, tuple(_by_receiver(f) for f in reversed(earlier)), open_sensor_faults(session, node_id))
+
+
+def sensor_fault_change(history: SensorFaultHistory, faults: Sequence[dict[str, Any]] | None) -> SensorFaultChange:
+    """Which receivers raise and which clear with a measurement whose sensor faults are ``faults`` (pure)."""
+    current = _by_receiver(faults)
+    recent = [set(f) for f in history.earlier] + [set(current)]
+    open_faults = history.open_faults
+    change = receiver_transitions(recent, open_faults, history.count)
+    if not change.raised and not change.cleared:
+        return SensorFaultChange()
+    return SensorFaultChange(
+        raised=tuple(current[rx] for rx in change.raised),
+        cleared=tuple(open_faults[rx] for rx in change.cleared),
+        faulty_after=tuple(sorted((set(open_faults) | set(change.raised)) - set(change.cleared))),
+        consecutive=history.count,
+    )
+
+
+def sensor_fault_events(
+    settings: AlertingSettings,
+    change: SensorFaultChange,
+    *,
+    node_id: str,
+    measurement_id: int,
+    state: str,
+    now: datetime | None = None,
+) -> list[EventInput]:
+    """The sensor_fault / sensor_fault_cleared events of ``change`` for the stored measurement (pure)."""
+    faulty_after = list(change.faulty_after)
+    return [
+        sensor_fault_event(
+            settings, node_id=node_id, fault=fault, measurement_id=measurement_id, state=state,
+            faulty_receivers=faulty_after, consecutive=change.consecutive, occurred_at=now,
+        )
+        for fault in change.raised
+    ] + [
+        sensor_fault_cleared_event(
+            settings, node_id=node_id, raised_event_id=open_fault.event_id, raised_receiver=open_fault.receiver,
+            raised_measurement_id=open_fault.measurement_id, measurement_id=measurement_id, state=state,
+            faulty_receivers=faulty_after, consecutive=change.consecutive, occurred_at=now,
+        )
+        for open_fault in change.cleared
+    ]
+
+
 def check_sensor_faults(
     session: Session,
     settings: AlertingSettings,
@@ -83,37 +157,14 @@ def check_sensor_faults(
 
     Call in the ``Database.write()`` transaction that stored the measurement (its detection
     with ``faults`` = ``detections.sensor_faults``), after ``store_measurement``; returns
-    the events added.
+    the events added. (The gateway reads the history before it stores, and adds the events
+    of ``sensor_fault_change`` with the measurement: the same decision.)
     """
-    count = settings.sensor_fault_count
-    current = _by_receiver(faults)
-    earlier = session.scalars(
-        select(DetectionRow.sensor_faults)
-        .where(DetectionRow.node_id == node_id, DetectionRow.measurement_id != measurement_id)
-        .order_by(DetectionRow.id.desc())
-        .limit(count - 1)
-    ).all()
-    recent = [set(_by_receiver(f)) for f in reversed(earlier)] + [set(current)]
-    open_faults = open_sensor_faults(session, node_id)
-    change = receiver_transitions(recent, open_faults, count)
-    if not change.raised and not change.cleared:
-        return []
-    faulty_after = sorted((set(open_faults) | set(change.raised)) - set(change.cleared))
-    events = [
-        sensor_fault_event(
-            settings, node_id=node_id, fault=current[rx], measurement_id=measurement_id, state=state,
-            faulty_receivers=faulty_after, consecutive=count, occurred_at=now,
-        )
-        for rx in change.raised
-    ] + [
-        sensor_fault_cleared_event(
-            settings, node_id=node_id, raised_event_id=open_faults[rx].event_id,
-            raised_receiver=open_faults[rx].receiver, raised_measurement_id=open_faults[rx].measurement_id,
-            measurement_id=measurement_id, state=state, faulty_receivers=faulty_after, consecutive=count,
-            occurred_at=now,
-        )
-        for rx in change.cleared
-    ]
+    history = sensor_fault_history(
+        session, node_id, settings.sensor_fault_count, exclude_measurement_id=measurement_id
+    )
+    change = sensor_fault_change(history, faults)
+    events = sensor_fault_events(settings, change, node_id=node_id, measurement_id=measurement_id, state=state, now=now)
     return [event for event in events if add_event_once(session, event, node_id=node_id, now=now)]
 
 
