@@ -1,10 +1,11 @@
 """Gateway ingest benchmark: measurements stored per second with the DI map recomputed.
 
-Each measurement goes through what the gateway does after the serial transfer: decode the
-int16 codes into a Measurement, image it against the node's baseline (the default
-`multipath` method with temperature compensation, and `paper`), and store the measurement,
-its map, detection and node health in one SQLite transaction (WAL, synchronous=FULL) on a
-real file. 16 channels x 6000 samples from the mock node's physics. One thread.
+Each measurement goes through what the gateway's cycle does after the serial transfer: decode
+the int16 codes into a Measurement, assess it against the node's baseline (the default
+`multipath` method with temperature compensation, and `paper`), decide the verdict
+(gateway/decision.py) and store the measurement, its map, detection, events and node health
+with `db.cycles.store_cycle` in one SQLite transaction (WAL, synchronous=FULL) on a real file.
+16 channels x 6000 samples from the mock node's physics. One thread.
 Target (docs/benchmarks.md): >= 20 measurements/s on one core.
 """
 from __future__ import annotations
@@ -21,16 +22,22 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from alerts.config import AlertingSettings  # noqa: E402
+from alerts.sensor_faults import SensorFaultHistory  # noqa: E402
 from db.baselines import set_active_baseline  # noqa: E402
 from db.clock import utc_now  # noqa: E402
+from db.cycles import store_cycle  # noqa: E402
 from db.database import open_database  # noqa: E402
 from db.measurements import store_measurement  # noqa: E402
-from db.models import MapSource, MeasurementKind, NodeState  # noqa: E402
-from db.nodes import record_node_health, upsert_node  # noqa: E402
-from db.records import DiMapInput, MapGrid, NodeGeometry, NodeInfo  # noqa: E402
-from gateway.assessment import assess_settings, detection_input, run_assessment  # noqa: E402
+from db.models import MeasurementKind, NodeState  # noqa: E402
+from db.nodes import upsert_node  # noqa: E402
+from db.records import AcquisitionInput, CycleRecord, NodeGeometry, NodeInfo  # noqa: E402
+from gateway.assessment import assess_settings, gateway_map  # noqa: E402
 from gateway.config import ImagingSettings, NodeSettings  # noqa: E402
+from gateway.decision import MonitoringInputs, NodeHistory, decide_monitoring  # noqa: E402
+from gateway.flagging import FlagState  # noqa: E402
 from gateway.measurement_build import NodeGeometryView, measurement_from_codes  # noqa: E402
+from imaging.pipeline import assess  # noqa: E402
 from mocknode.physics import acquire  # noqa: E402
 from mocknode.scenario import load_scenario  # noqa: E402
 
@@ -65,22 +72,27 @@ def run(method: str, n: int, workdir: Path) -> tuple[float, float]:
         set_active_baseline(s, "bench", row.id, created_by="bench", reason="bench")
         baseline_id = row.id
     library = [build(base_acq)]
+    history = NodeHistory(NodeState.CALIBRATING, baseline_id, utc_now(), 1)
+    inputs = MonitoringInputs(FlagState(), None, [baseline_id], library, SensorFaultHistory(2, (), {}))
     settings = assess_settings(node, None, view.wall_mm)
+    alerting = AlertingSettings()
     warm_up = 3  # geometry tables and compiled kernels are built once per process: not timed
     wall0 = cpu0 = 0.0
     for k in range(warm_up + n):
         if k == warm_up:
             wall0, cpu0 = time.perf_counter(), time.process_time()
         acq = currents[k % len(currents)]
-        result = run_assessment(build(acq), library, settings)
-        di = DiMapInput(MapSource.GATEWAY, result.method, MapGrid(**result.di_map.grid.spec()),
-                        result.di_map.pixels.astype(np.float32), baseline_id)
+        result = assess(build(acq), library, settings)
+        verdict = decide_monitoring(node, history, inputs, result, temperature_c=acq.temperature_c, now=utc_now())
+        record = CycleRecord(
+            acquisition=AcquisitionInput(acquired_at=utc_now(), node_measurement_id=k + 1, codes=acq.codes,
+                                         volts_per_code=acq.volts_per_code, **common),
+            kind=verdict.kind, error_counters={"cycles": k}, di_maps=[gateway_map(result, [baseline_id])],
+            detection=verdict.detection, state_change=verdict.state_change,
+        )
         with db.write() as s:
-            store_measurement(s, "bench", kind=MeasurementKind.MONITOR, acquired_at=utc_now(), node_measurement_id=k + 1,
-                              codes=acq.codes, volts_per_code=acq.volts_per_code, di_maps=[di],
-                              detection=detection_input(result, NodeState.COMMISSIONING, None, [baseline_id]),
-                              **common)
-            record_node_health(s, "bench", online=True, error_counters={"cycles": k})
+            store_cycle(s, "bench", record,
+                        lambda mid: verdict.events(alerting, node_id="bench", measurement_id=mid))  # noqa: B023
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     db.dispose()
     return n / wall, cpu / n

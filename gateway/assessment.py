@@ -7,41 +7,24 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sqlalchemy import select
+import numpy as np
 from sqlalchemy.orm import Session
 
-from db.baselines import active_baseline
 from db.measurements import get_measurement, load_traces
-from db.models import MeasurementKind, MeasurementRow, NodeState
-from db.records import DetectionInput
+from db.models import MapSource, NodeState
+from db.records import DetectionInput, DiMapInput, MapGrid
 from gateway.config import NodeSettings
 from gateway.measurement_build import NodeGeometryView, measurement_from_codes
 from imaging.measurement import Measurement
-from imaging.pipeline import Assessment, AssessSettings, assess
+from imaging.pipeline import Assessment, AssessSettings
 
 
 class BaselineLibrary:
-    """A node's defect-free references for optimal baseline selection: the active one first,
-    then the most recent other baseline measurements. Decoded traces are cached by id."""
+    """A node's defect-free references for optimal baseline selection, decoded (``db.baselines.
+    library_baseline_ids`` names them: the active one first). Decoded traces are cached by id."""
 
-    def __init__(self, size: int) -> None:
-        self.size = size
+    def __init__(self) -> None:
         self._cache: dict[int, Measurement] = {}
-
-    def ids(self, session: Session, node_id: str) -> list[int]:
-        active = active_baseline(session, node_id)
-        others = session.scalars(
-            select(MeasurementRow.id)
-            .where(
-                MeasurementRow.node_id == node_id,
-                MeasurementRow.kind == MeasurementKind.BASELINE,
-                MeasurementRow.traces_pruned_at.is_(None),
-            )
-            .order_by(MeasurementRow.id.desc())
-            .limit(self.size)
-        ).all()
-        ids = ([active.measurement_id] if active is not None else []) + [i for i in others if active is None or i != active.measurement_id]
-        return ids[: self.size]
 
     def load(self, session: Session, ids: list[int], view: NodeGeometryView) -> list[Measurement]:
         for stale in set(self._cache) - set(ids):
@@ -115,8 +98,17 @@ def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float 
     )
 
 
-def run_assessment(current: Measurement, library: list[Measurement], settings: AssessSettings) -> Assessment:
-    return assess(current, library, settings)
+def gateway_map(result: Assessment, library_ids: list[int]) -> DiMapInput | None:
+    """The gateway's own DI map of the assessment, as stored (None when the imaging abstained)."""
+    if result.di_map is None or result.baseline is None:
+        return None
+    return DiMapInput(
+        source=MapSource.GATEWAY,
+        method=result.method,
+        grid=MapGrid(**result.di_map.grid.spec()),
+        pixels=result.di_map.pixels.astype(np.float32),
+        baseline_measurement_id=library_ids[result.baseline.index],
+    )
 
 
 def detection_input(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from db.models import NodeState
@@ -46,6 +47,21 @@ def step(prev: FlagState, peak_di: float | None, threshold: float, hysteresis_co
             return FlagState(NodeState.OK)
         return replace(prev, state=NodeState.DAMAGE, above=0, below=below)
     return FlagState(NodeState.OK)
+
+
+def restored_flag_state(readings: Sequence[tuple[float, float]], node_state: NodeState) -> FlagState:
+    """The flagger's memory after a restart: the stored state, and the run of consecutive readings on
+    one side of the threshold at the head of ``readings`` ((peak DI, threshold), newest first)."""
+    above = below = 0
+    for peak, threshold in readings:
+        if peak > threshold and below == 0:
+            above += 1
+        elif peak <= threshold and above == 0:
+            below += 1
+        else:
+            break
+    state = node_state if node_state in FLAGGING_STATES else NodeState.OK
+    return FlagState(state, above=above, below=below if state == NodeState.DAMAGE else 0)
 
 
 class CalibrationError(ValueError):

@@ -5,7 +5,13 @@ import pytest
 from sqlalchemy import insert
 from sqlalchemy.exc import IntegrityError
 
-from db.baselines import active_baseline, active_baseline_measurement, baseline_history, set_active_baseline
+from db.baselines import (
+    active_baseline,
+    active_baseline_measurement,
+    baseline_history,
+    library_baseline_ids,
+    set_active_baseline,
+)
 from db.errors import BaselineError, NotFound
 from db.models import BaselineRow, MeasurementKind
 from tests.support.db_fixtures import T0, minutes, store_sample
@@ -92,7 +98,6 @@ def test_a_monitor_measurement_may_be_promoted_to_baseline(any_db):
 
 
 def test_an_inactive_baseline_joins_the_library_the_gateway_compares_with(sqlite_db):
-    from gateway.assessment import BaselineLibrary
     from service import baselines, schemas
 
     with sqlite_db.write() as session:
@@ -100,10 +105,10 @@ def test_an_inactive_baseline_joins_the_library_the_gateway_compares_with(sqlite
         set_active_baseline(session, "node-a", commissioning.id, created_by="gateway", reason="commissioning")
         summer = store_sample(session, "node-a", seed=2)  # a monitor measurement on a hot day
     with sqlite_db.session() as session:
-        assert BaselineLibrary(24).ids(session, "node-a") == [commissioning.id]
+        assert library_baseline_ids(session, "node-a", 24) == [commissioning.id]
     with sqlite_db.write() as session:
         baselines.create(session, "node-a", schemas.BaselineCreate(measurement_id=summer.id, reason="35 degC, sound",
                                                                    activate=False), who="operator:kim")
     with sqlite_db.session() as session:
-        assert BaselineLibrary(24).ids(session, "node-a") == [commissioning.id, summer.id]
+        assert library_baseline_ids(session, "node-a", 24) == [commissioning.id, summer.id]
         assert active_baseline(session, "node-a").measurement_id == commissioning.id

@@ -71,18 +71,19 @@ def test_the_modal_filter_is_off_unless_a_node_asks_for_it(tmp_path):
 
 
 def test_a_record_beyond_the_compensated_temperature_range_is_stored_as_an_abstention_with_its_reason(tmp_path):
-    from gateway.assessment import assess_settings, detection_input, run_assessment
+    from gateway.assessment import assess_settings, detection_input
+    from imaging.pipeline import assess
     from tests.support.synthetic import mock_pipe_record as record
 
     path = tmp_path / "g.toml"
     path.write_text(GOOD.format(db=tmp_path / "x.db") + "[nodes.imaging]\nmax_compensated_stretch = 0.003\n")
     strict, lenient = load_settings(path).nodes
     warm, library = record(45.0, 2), [record(20.0, 1)]
-    abstained = detection_input(run_assessment(warm, library, assess_settings(strict, 0.02, 4.0)),
+    abstained = detection_input(assess(warm, library, assess_settings(strict, 0.02, 4.0)),
                                 NodeState.NO_VALID_BASELINE, 0.02, [7])
     assert abstained.peak_di is None and "about 2" in abstained.abstain_reason
     assert abstained.baseline_measurement_id is None
-    imaged = detection_input(run_assessment(warm, library, assess_settings(lenient, 0.02, 4.0)),
+    imaged = detection_input(assess(warm, library, assess_settings(lenient, 0.02, 4.0)),
                              NodeState.OK, 0.02, [7])
     assert imaged.peak_di is not None and imaged.abstain_reason is None and imaged.baseline_measurement_id == 7
 
