@@ -125,7 +125,7 @@ def recent_verdicts(session: Session, node_id: str, *, limit: int) -> list[tuple
         .order_by(DetectionRow.id.desc())
         .limit(limit)
     ).all()
-    return [(float(peak), float(threshold)) for peak, threshold in rows]
+    return [(float(peak), float(threshold)) for peak, threshold in rows if peak is not None and threshold is not None]
 
 
 def recent_sensor_faults(

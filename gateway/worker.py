@@ -13,6 +13,7 @@ import statistics
 import threading
 import time
 from dataclasses import dataclass
+from datetime import datetime
 
 from sqlalchemy.orm import Session
 
@@ -28,7 +29,7 @@ from db.measurements import add_event_once
 from db.models import MeasurementKind, NodeState
 from db.nodes import get_node, is_decommissioned, record_node_health, upsert_node
 from db.queries import baseline_count, calibration_peaks, recent_verdicts
-from db.records import CycleRecord, DiMapInput
+from db.records import CycleRecord, DiMapInput, EventInput
 from gateway.acquisition import Acquisition, ClientFactory, Connection, acquire, open_connection
 from gateway.assessment import BaselineLibrary, assess_settings, gateway_map
 from gateway.config import NodeSettings
@@ -103,7 +104,7 @@ class NodeWorker:
         self.library = BaselineLibrary()
         self._threshold_cache: tuple[int | None, float | None] | None = None  # (active baseline, threshold)
         self._out_of_service = False
-        self._decommissioned_at = None  # of the decommissioning this worker saw (for node_recommissioned)
+        self._decommissioned_at: datetime | None = None  # of the decommissioning this worker saw (for node_recommissioned)
         self.thread = threading.Thread(target=self.run, name=f"node-{settings.id}", daemon=True)
 
     @property
@@ -183,11 +184,13 @@ class NodeWorker:
         with self.db.write() as session:  # a storage error leaves the change to be noticed again next cycle
             node = get_node(session, self.settings.id)
             since = node.decommissioned_at
-            if decommissioned:
+            decommissioned = since is not None  # as of this transaction (an admin may just have undone it)
+            event: EventInput | None = None
+            if since is not None:
                 node.online = False  # a poll in flight when it was decommissioned marked it online
                 event = node_decommissioned_event(
                     self.alerting, node_id=node.node_id, state=node.state.value,
-                    decommissioned_at=node.decommissioned_at, by=node.decommissioned_by or "?",
+                    decommissioned_at=since, by=node.decommissioned_by or "?",
                     reason=node.decommission_reason or "",
                 )
             elif self._decommissioned_at is not None:
@@ -195,8 +198,6 @@ class NodeWorker:
                     self.alerting, node_id=node.node_id, state=node.state.value,
                     decommissioned_at=self._decommissioned_at,
                 )
-            else:
-                event = None
             if event is not None:  # idempotent: a restart finds the same decommissioning, the same id
                 add_event_once(session, event, node_id=node.node_id)
         self._out_of_service, self._decommissioned_at = decommissioned, since
