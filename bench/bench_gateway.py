@@ -28,6 +28,7 @@ from db.baselines import set_active_baseline  # noqa: E402
 from db.clock import utc_now  # noqa: E402
 from db.cycles import store_cycle  # noqa: E402
 from db.database import open_database  # noqa: E402
+from db.measurement_build import NodeGeometryView, measurement_from_codes  # noqa: E402
 from db.measurements import store_measurement  # noqa: E402
 from db.models import MeasurementKind, NodeState  # noqa: E402
 from db.nodes import upsert_node  # noqa: E402
@@ -36,7 +37,6 @@ from gateway.assessment import assess_settings, gateway_map  # noqa: E402
 from gateway.config import ImagingSettings, NodeSettings  # noqa: E402
 from gateway.decision import MonitoringInputs, NodeHistory, decide_monitoring  # noqa: E402
 from gateway.flagging import FlagState  # noqa: E402
-from gateway.measurement_build import NodeGeometryView, measurement_from_codes  # noqa: E402
 from imaging.pipeline import assess  # noqa: E402
 from mocknode.physics import acquire  # noqa: E402
 from mocknode.scenario import load_scenario  # noqa: E402

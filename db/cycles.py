@@ -42,6 +42,8 @@ def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for:
         excitation_hz=acquisition.excitation_hz,
         cycles=acquisition.cycles,
         temperature_c=acquisition.temperature_c,
+        velocity_m_s=acquisition.velocity_m_s,
+        wall_mm=acquisition.wall_mm,
         di_maps=record.di_maps,
         detection=record.detection,
         state_change=record.state_change,

@@ -39,6 +39,8 @@ def store_measurement(
     excitation_hz: float,
     cycles: int,
     temperature_c: float | None = None,
+    velocity_m_s: float | None = None,
+    wall_mm: float | None = None,
     di_maps: Sequence[DiMapInput] = (),
     detection: DetectionInput | None = None,
     state_change: StateChangeInput | None = None,
@@ -46,6 +48,8 @@ def store_measurement(
     now: datetime | None = None,
 ) -> MeasurementRow:
     """Add one measurement (raw ADC codes, int16 [n_channels, n_samples]) and its results.
+
+    ``velocity_m_s`` and ``wall_mm``: what the record was imaged with (None: not known).
 
     Call inside ``Database.write()``: the measurement, its DI maps, detection, state change,
     events and the node's new state are flushed together and become visible in one commit,
@@ -77,6 +81,8 @@ def store_measurement(
         volts_per_code=volts_per_code,
         excitation_hz=excitation_hz,
         cycles=cycles,
+        velocity_m_s=velocity_m_s,
+        wall_mm=wall_mm,
         traces_blob=encoded.data,
         traces_codec=encoded.codec,
         traces_dtype=encoded.dtype,

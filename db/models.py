@@ -153,6 +153,9 @@ class MeasurementRow(Base):
     volts_per_code: Mapped[float] = mapped_column(Float)
     excitation_hz: Mapped[float] = mapped_column(Float)
     cycles: Mapped[int] = mapped_column(Integer)
+    # What the gateway imaged the record with (revision 0004; NULL before: the default velocity, no wall).
+    velocity_m_s: Mapped[float | None] = mapped_column(Float)
+    wall_mm: Mapped[float | None] = mapped_column(Float)
     # Deferred: listing measurements must not drag ~100 kB per row out of the database.
     traces_blob: Mapped[bytes | None] = mapped_column(LargeBinary, deferred=True)
     traces_codec: Mapped[str] = mapped_column(String(32))

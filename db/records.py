@@ -135,6 +135,8 @@ class AcquisitionInput:
     excitation_hz: float
     cycles: int
     temperature_c: float | None = None
+    velocity_m_s: float | None = None  # the wave velocity the record is imaged with
+    wall_mm: float | None = None  # the wall thickness it is imaged with
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,11 @@ from datetime import datetime
 import numpy as np
 
 from db.clock import utc_now
+from db.measurement_build import NodeGeometryView, measurement_from_codes
 from db.models import MapSource
 from db.records import AcquisitionInput, DiMapInput, MapGrid, NodeInfo
 from gateway.config import NodeSettings
-from gateway.measurement_build import NodeGeometryView, effective_geometry, measurement_from_codes
+from gateway.geometry import effective_geometry
 from gateway.node_client import NodeClient, NodeClientError, TraceTransfer
 from imaging.measurement import Measurement
 from protocol.messages import AcquireReply, ConfigureReply, InfoReply, StatusReply
@@ -99,6 +100,8 @@ class Acquisition:
             excitation_hz=self.measurement.excitation_hz,
             cycles=self.measurement.cycles,
             temperature_c=self.temperature_c,
+            velocity_m_s=self.measurement.velocity_m_s,
+            wall_mm=self.measurement.wall_mm,
         )
 
 

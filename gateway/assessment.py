@@ -10,11 +10,11 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
+from db.measurement_build import NodeGeometryView, measurement_from_codes
 from db.measurements import get_measurement, load_traces
 from db.models import MapSource, NodeState
 from db.records import DetectionInput, DiMapInput, MapGrid
 from gateway.config import NodeSettings
-from gateway.measurement_build import NodeGeometryView, measurement_from_codes
 from imaging.measurement import Measurement
 from imaging.pipeline import Assessment, AssessSettings
 

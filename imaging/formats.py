@@ -26,7 +26,7 @@ REQUIRED_KEYS = (
     "cycles",
     "temperature_c",
 )
-OPTIONAL_KEYS = ("pipe_length_mm", "tx_axial_mm")
+OPTIONAL_KEYS = ("pipe_length_mm", "tx_axial_mm", "wall_mm")
 SCALAR_KEYS = tuple(k for k in REQUIRED_KEYS + OPTIONAL_KEYS if k not in ("traces", "rx_angles_deg", "tx_angles_deg"))
 CSV_META_KEYS = tuple(k for k in REQUIRED_KEYS + OPTIONAL_KEYS if k not in ("traces", "fs_hz", "t0_s"))
 SAMPLING_TOLERANCE = 1e-6  # relative jitter allowed in a CSV time column

@@ -22,7 +22,8 @@ class Measurement:
 
     Angles are in degrees on the pipe circumference, distances in millimetres.
     ``tx_axial_mm`` is the Tx ring's axial position from the pipe end behind it; the Rx ring
-    sits ``tx_rx_distance_mm`` further along. Both pipe fields are optional (None when unknown).
+    sits ``tx_rx_distance_mm`` further along. Both pipe fields are optional (None when unknown),
+    as is ``wall_mm``, the wall thickness (for the mid-wall circumference waves travel).
     """
 
     traces: np.ndarray
@@ -38,6 +39,7 @@ class Measurement:
     temperature_c: float = math.nan
     pipe_length_mm: float | None = None
     tx_axial_mm: float | None = None
+    wall_mm: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
@@ -87,6 +89,11 @@ class Measurement:
             if not (math.isfinite(value) and value >= 0):
                 raise MeasurementError(f"{name} must be a non-negative finite number, got {value!r}")
             object.__setattr__(self, name, value)
+        if self.wall_mm is not None:
+            wall = float(self.wall_mm)
+            if not (math.isnan(wall) or (math.isfinite(wall) and wall > 0)):
+                raise MeasurementError(f"wall_mm must be a positive finite number, got {self.wall_mm!r}")
+            object.__setattr__(self, "wall_mm", None if math.isnan(wall) else wall)
         if (
             self.pipe_length_mm is not None
             and self.tx_axial_mm is not None

@@ -4,47 +4,18 @@ from __future__ import annotations
 import numpy as np
 from sqlalchemy.orm import Session
 
+from db.measurement_build import stored_channels, stored_measurement
 from db.measurements import get_measurement, load_traces
-from db.models import MeasurementRow
 from db.records import NodeGeometry
-from gateway.measurement_build import NodeGeometryView, measurement_from_codes
 from imaging.formats import csv_text, npz_bytes
-from imaging.measurement import DEFAULT_VELOCITY_M_S, Measurement
 from service import schemas
-
-
-def _rx_channels(row: MeasurementRow, geometry: NodeGeometry) -> tuple[int, ...] | None:
-    # As the gateway does: a record with fewer rows than receivers holds the first channels.
-    return None if row.n_channels == len(geometry.rx_angles_deg) else tuple(range(row.n_channels))
-
-
-def stored_measurement(session: Session, measurement_id: int) -> Measurement:
-    """The measurement in volts (codes x volts_per_code) with its node's geometry.
-
-    The node's velocity is not stored, so the T(0,1) default (3130 m/s in steel) is used.
-    Raises ``TracesPruned`` after retention, ``NotFound`` for an unknown id.
-    """
-    row = get_measurement(session, measurement_id)
-    codes = load_traces(row)
-    geometry = NodeGeometry.model_validate(row.node.geometry)
-    return measurement_from_codes(
-        codes,
-        row.volts_per_code,
-        fs_hz=row.fs_hz,
-        t0_s=row.t0_s,
-        view=NodeGeometryView(geometry, DEFAULT_VELOCITY_M_S),
-        channels=_rx_channels(row, geometry),
-        excitation_hz=row.excitation_hz,
-        cycles=row.cycles,
-        temperature_c=row.temperature_c,
-    )
 
 
 def traces_json(session: Session, measurement_id: int, units: schemas.TraceUnits) -> schemas.Traces:
     row = get_measurement(session, measurement_id)
     codes = load_traces(row)
     geometry = NodeGeometry.model_validate(row.node.geometry)
-    channels = _rx_channels(row, geometry)
+    channels = stored_channels(row, geometry)
     rx = np.asarray(geometry.rx_angles_deg, dtype=np.float64)
     if channels is not None:
         rx = rx[list(channels)]
@@ -61,6 +32,7 @@ def traces_json(session: Session, measurement_id: int, units: schemas.TraceUnits
 
 
 def traces_npz(session: Session, measurement_id: int) -> bytes:
+    """The record as the gateway imaged it (its velocity and wall), as .npz file contents."""
     return npz_bytes(stored_measurement(session, measurement_id))
 
 

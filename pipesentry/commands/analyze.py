@@ -44,7 +44,9 @@ def analyze(
     feature: Annotated[str, typer.Option(help="multipath feature: analytic (default), envelope or squared")] = "analytic",
     threshold: Annotated[float | None, typer.Option(help="detection threshold (default: documented per method)")] = None,
     max_defects: Annotated[int, typer.Option(help="report at most this many defects")] = 3,
-    wall_mm: Annotated[float | None, typer.Option(help="pipe wall thickness, for the mid-wall wrap length")] = None,
+    wall_mm: Annotated[
+        float | None, typer.Option(help="pipe wall thickness, for the mid-wall wrap length (default: the file's wall_mm)")
+    ] = None,
     compensate: Annotated[bool, typer.Option(help="stretch the baseline to the current temperature")] = True,
 ) -> None:
     """Image CURRENT against BASELINE and estimate the defect positions."""
@@ -60,7 +62,7 @@ def analyze(
         cur = load_measurement(current)
         result = run_analysis(
             base, cur, method=method, feature=feature, threshold=threshold, max_defects=max_defects,
-            compensate=compensate, wall_mm=wall_mm,
+            compensate=compensate, wall_mm=cur.wall_mm if wall_mm is None else wall_mm,
         )
     except (MeasurementError, BaselineMismatch, SettingsError, MultipathError) as exc:
         fail(str(exc))

@@ -18,11 +18,12 @@ from sqlalchemy.exc import StatementError
 
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageBusy
+from db.measurements import get_measurement
 from db.migrate import alembic_config, head_revision, upgrade_to_head
 from db.models import Base
 from db.nodes import get_node, upsert_node
 from db.sqlite_setup import PAGE_SIZE_BYTES
-from tests.support.db_fixtures import T0, node_info
+from tests.support.db_fixtures import T0, node_info, store_sample
 
 
 def _pragma(database: Database, name: str):
@@ -211,6 +212,62 @@ def test_a_database_of_the_first_release_upgrades_keeping_its_nodes(sqlite_url):
             assert node.state.value == "damage" and node.decommissioned_at is None and node.label is None
     finally:
         database.dispose()
+
+
+@pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
+def test_a_database_of_release_0003_upgrades_keeping_its_records_which_export_with_the_default_velocity(
+    request, url_fixture
+):
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import Session
+
+    from db.measurement_build import stored_measurement
+    from db.measurements import load_traces
+    from imaging.measurement import DEFAULT_VELOCITY_M_S
+
+    url = request.getfixturevalue(url_fixture)
+    engine = create_engine(url)
+    with engine.connect() as connection:
+        command.upgrade(alembic_config(connection), "0003")
+        connection.commit()
+        with Session(connection) as session:  # a record as release 0003 stored it (no velocity, no wall)
+            upsert_node(session, node_info(), seen_at=T0)
+            old_id = store_sample_as_of_0003(session)
+            session.commit()
+    engine.dispose()
+    database = open_database(url)  # the gateway's open: upgrades to head
+    try:
+        assert database.schema_revision() == head_revision() != "0003"
+        with database.session() as session:
+            row = get_measurement(session, old_id)
+            assert (row.velocity_m_s, row.wall_mm) == (None, None) and load_traces(row).shape == (8, 2048)
+            old = stored_measurement(session, old_id)
+            assert old.velocity_m_s == DEFAULT_VELOCITY_M_S and old.wall_mm is None
+        with database.write() as session:
+            new_id = store_sample(session, seed=2, velocity_m_s=3205.0, wall_mm=6.0).id
+        with database.session() as session:
+            new = stored_measurement(session, new_id)
+            assert (new.velocity_m_s, new.wall_mm) == (3205.0, 6.0)
+    finally:
+        database.dispose()
+
+
+def store_sample_as_of_0003(session) -> int:
+    """Insert a measurement with only the columns revision 0003 has (the ORM model is 0004's)."""
+    from sqlalchemy import insert
+
+    from db import blobs
+    from db.models import MeasurementKind, MeasurementRow
+    from tests.support.db_fixtures import sample_codes
+
+    encoded = blobs.encode_array(sample_codes(1), blobs.TRACE_DTYPE)
+    result = session.execute(insert(MeasurementRow).values(
+        node_id="node-a", kind=MeasurementKind.BASELINE, acquired_at=T0, node_measurement_id=1, temperature_c=21.5,
+        averaging=16, fs_hz=2.0e6, t0_s=1e-5, n_channels=8, n_samples=2048, volts_per_code=1.0 / 32768,
+        excitation_hz=85e3, cycles=5, traces_blob=encoded.data, traces_codec=encoded.codec, traces_dtype=encoded.dtype,
+        traces_sha256=encoded.sha256, traces_nbytes=len(encoded.data), traces_pruned_at=None, stored_at=T0,
+    ))
+    return int(result.inserted_primary_key[0])
 
 
 def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):

@@ -32,6 +32,16 @@ def test_npz_keeps_optional_pipe_fields_and_ignores_extra_keys(tmp_path, meas):
     assert back.pipe_length_mm == 1000.0 and back.tx_axial_mm == 300.0
 
 
+def test_the_wall_thickness_travels_with_the_record_in_npz_and_csv(tmp_path, meas):
+    from dataclasses import replace
+
+    walled = replace(meas, wall_mm=6.02)
+    assert load_measurement(save_npz(walled, tmp_path / "m.npz")).wall_mm == 6.02
+    (tmp_path / "m.csv").write_text(csv_text(walled))
+    assert load_measurement(tmp_path / "m.csv").wall_mm == 6.02
+    assert load_measurement(save_npz(meas, tmp_path / "none.npz")).wall_mm is None
+
+
 def test_nan_temperature_means_unknown(tmp_path, meas):
     data = dict(np.load(save_npz(meas, tmp_path / "m.npz")))
     data["temperature_c"] = np.nan
@@ -48,6 +58,7 @@ def test_nan_temperature_means_unknown(tmp_path, meas):
         (lambda d: d.__setitem__("traces", np.zeros(300, np.float32)), "2-D"),
         (lambda d: d.__setitem__("fs_hz", np.array(-1.0)), "fs_hz must be a positive"),
         (lambda d: d.__setitem__("cycles", np.array(2.5)), "cycles must be an integer"),
+        (lambda d: d.__setitem__("wall_mm", np.array(-4.0)), "wall_mm must be a positive"),
         (lambda d: d.update(pipe_length_mm=500.0, tx_axial_mm=300.0), "beyond pipe_length_mm"),
     ],
 )

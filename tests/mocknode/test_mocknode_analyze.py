@@ -8,8 +8,9 @@ import time
 
 import pytest
 
+from db.measurement_build import measurement_from_codes
 from gateway.config import GeometryOverride
-from gateway.measurement_build import effective_geometry, measurement_from_codes
+from gateway.geometry import effective_geometry
 from gateway.node_client import NodeClient
 from imaging.formats import save_npz
 from imaging.timing import surface_distance_mm

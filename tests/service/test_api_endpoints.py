@@ -145,6 +145,27 @@ def test_traces_as_npz_csv_and_json_equal_the_stored_codes_times_volts_per_code(
     np.testing.assert_allclose(np.asarray(codes["traces"]) * codes["volts_per_code"], expected, rtol=1e-6)
 
 
+def test_exported_files_reproduce_the_map_the_gateway_made(viewer):
+    """The .npz of a flagged record and of the baseline it was imaged against, analysed as an
+    engineer would (imaging.analysis.analyze, the file's velocity and wall), give the peak the
+    gateway stored."""
+    from imaging.analysis import analyze
+
+    measurement_id = latest_monitor_id(viewer, DAMAGED_NODE)
+    detection = viewer.get(f"/api/v1/measurements/{measurement_id}").json()["detection"]
+    current, baseline = (
+        _load_bytes(viewer.get(f"/api/v1/measurements/{m}/traces.npz").content, ".npz", load_npz)
+        for m in (measurement_id, detection["baseline_measurement_id"])
+    )
+    assert current.wall_mm == baseline.wall_mm == 4.0  # the fleet's gateway config (tests/support/process_harness)
+    result = analyze(baseline, current, threshold=detection["threshold"], wall_mm=current.wall_mm)
+    assert result.peak_di == pytest.approx(detection["peak_di"], rel=1e-6)
+    assert (result.peak.axial_mm, result.peak.angle_deg) == pytest.approx(
+        (detection["axial_mm"], detection["angle_deg"]), abs=1e-3)  # mm, degrees: the sub-pixel refinement
+    unwalled = analyze(baseline, current, threshold=detection["threshold"], wall_mm=None)  # what files gave before
+    assert unwalled.peak_di != pytest.approx(detection["peak_di"], rel=1e-3)  # measured: 2 % off, 2 mm off
+
+
 def _load_bytes(content: bytes, suffix: str, loader):
     import tempfile
     from pathlib import Path

@@ -130,6 +130,8 @@ def store_sample(
     detection: DetectionInput | None = None,
     state_change: StateChangeInput | None = None,
     with_map: bool = False,
+    velocity_m_s: float | None = None,
+    wall_mm: float | None = None,
 ) -> MeasurementRow:
     """Store one measurement of ``node_id`` (registering the node if needed)."""
     if session.get(NodeRow, node_id) is None:
@@ -151,6 +153,8 @@ def store_sample(
         excitation_hz=85e3,
         cycles=5,
         temperature_c=21.5,
+        velocity_m_s=velocity_m_s,
+        wall_mm=wall_mm,
         di_maps=maps,
         detection=detection,
         state_change=state_change,
