@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import typer
 
+from pipesentry.commands.alerts import alerts_app
 from pipesentry.commands.analyze import analyze
 from pipesentry.commands.api import api
 from pipesentry.commands.apikey import apikey_app
@@ -27,6 +28,7 @@ app.command()(demo)
 app.command()(gateway)
 app.command()(api)
 app.add_typer(apikey_app, name="apikey")
+app.add_typer(alerts_app, name="alerts")
 
 try:  # the mock node registers itself once its package is in place
     from mocknode.cli import mock_node
