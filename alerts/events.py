@@ -2,22 +2,41 @@
 
 Every event id is a UUIDv5 of the fact it reports (node, kind, measurement or outage), so
 building the same event twice gives the same id: the outbox refuses a duplicate fact and
-receivers can use the id as an idempotency key. Payloads are plain JSON, the same for all
-sinks; each sink renders them (``alerts/webhook.py`` ... ``alerts/mqtt.py``).
+receivers can use the id as an idempotency key. Payloads are the typed models of
+``alerts/payloads.py`` (a versioned contract) stored as their JSON, the same for all sinks;
+each sink renders them (``alerts/webhook.py`` ... ``alerts/mqtt.py``).
 """
 from __future__ import annotations
 
 import uuid
+from dataclasses import replace
 from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
 from alerts.config import AlertingSettings
+from alerts.payloads import (
+    BaselineChangedPayload,
+    Decommissioning,
+    Detection,
+    EventPayload,
+    Links,
+    Location,
+    NodeDecommissionedPayload,
+    NodeOfflinePayload,
+    NodeOnlinePayload,
+    NodeRecommissionedPayload,
+    Receiver,
+    SensorFaultClearedPayload,
+    SensorFaultPayload,
+    SinkDisabledPayload,
+    StateChangePayload,
+    payload_json,
+)
 from db.clock import utc_now
-from db.models import Severity
+from db.models import NodeState, Severity
 from db.records import EventInput
 
-PAYLOAD_SCHEMA = 1
 # Fixed namespace of PipeSentry event ids (uuid5); never change it, ids would stop matching.
 EVENT_NAMESPACE = uuid.UUID("6f1c3f4e-2b7a-5d3e-9a41-7c2e1b0d5a90")
 
@@ -37,10 +56,8 @@ class EventKind(StrEnum):
     SENSOR_FAULT_CLEARED = "sensor_fault_cleared"  # that receiver is healthy again
 
 
-# Node states as strings: the gateway's flagger has more states than the stored enum.
-ALARM_STATES = {"suspected": Severity.WARNING, "damage": Severity.CRITICAL}
-OK_STATE = "ok"
-BLIND_STATE = "no_valid_baseline"
+# The states whose entry raises damage, and how loudly.
+ALARM_STATES = {NodeState.SUSPECTED: Severity.WARNING, NodeState.DAMAGE: Severity.CRITICAL}
 # Kinds that carry a node's state transition (from_state -> to_state).
 STATE_KINDS = frozenset(
     {EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED, EventKind.MONITORING_BLIND, EventKind.MONITORING_RESTORED}
@@ -71,8 +88,8 @@ def state_change_event(
     settings: AlertingSettings,
     *,
     node_id: str,
-    from_state: str,
-    to_state: str,
+    from_state: NodeState | str,
+    to_state: NodeState | str,
     measurement_id: int | None,
     peak_di: float | None,
     threshold: float | None,
@@ -89,41 +106,40 @@ def state_change_event(
     ``monitoring_restored``. Commissioning/calibrating transitions give None. ``reason``: why the
     imaging abstained (the detection's ``abstain_reason``), carried by ``monitoring_blind``.
     """
-    from_state, to_state = str(from_state), str(to_state)
-    if from_state == to_state:
+    before, after = NodeState(from_state), NodeState(to_state)
+    if before == after:
         return None
-    if to_state in ALARM_STATES:
-        kind, severity = EventKind.DAMAGE_RAISED, ALARM_STATES[to_state]
+    if after in ALARM_STATES:
+        kind, severity = EventKind.DAMAGE_RAISED, ALARM_STATES[after]
         routing = severity
-    elif to_state == OK_STATE and from_state in ALARM_STATES:
-        kind, severity, routing = EventKind.DAMAGE_CLEARED, Severity.INFO, ALARM_STATES[from_state]
-    elif to_state == BLIND_STATE:
+    elif after == NodeState.OK and before in ALARM_STATES:
+        kind, severity, routing = EventKind.DAMAGE_CLEARED, Severity.INFO, ALARM_STATES[before]
+    elif after == NodeState.NO_VALID_BASELINE:
         kind, severity = EventKind.MONITORING_BLIND, Severity.WARNING
         routing = severity
-    elif to_state == OK_STATE and from_state == BLIND_STATE:
+    elif after == NodeState.OK and before == NodeState.NO_VALID_BASELINE:
         kind, severity, routing = EventKind.MONITORING_RESTORED, Severity.INFO, Severity.WARNING
     else:
         return None
     occurred_at = occurred_at or utc_now()
     fact = measurement_id if measurement_id is not None else occurred_at.isoformat()
-    eid = event_id(kind, node_id, fact, f"{from_state}->{to_state}")
+    eid = event_id(kind, node_id, fact, f"{before}->{after}")
     detection = _detection(peak_di, threshold)
     location = _location(axial_mm, angle_deg)
-    payload = _payload(
-        settings, eid, kind, node_id, severity, routing, occurred_at,
-        summary=_state_summary(kind, node_id, from_state, to_state, detection, location, reason),
-        state=to_state, previous_state=from_state, online=True, measurement_id=measurement_id,
-        detection=detection, location=location,
-        extra={"reason": reason} if kind == EventKind.MONITORING_BLIND and reason else None,
+    payload = StateChangePayload(
+        **_common(settings, eid, kind, node_id, severity, routing, occurred_at, measurement_id),
+        summary=_state_summary(kind, node_id, before, after, detection, location, reason),
+        state=after, previous_state=before, online=True, detection=detection, location=location,
+        reason=reason if kind == EventKind.MONITORING_BLIND and reason else None,
     )
-    return EventInput(kind=kind, severity=severity, payload=payload, sinks=settings.sink_names_for(routing), id=eid)
+    return _event(settings, payload, routing)
 
 
 def node_offline_event(
     settings: AlertingSettings,
     *,
     node_id: str,
-    state: str,
+    state: NodeState | str,
     last_seen_at: datetime,
     now: datetime | None = None,
 ) -> EventInput:
@@ -134,23 +150,20 @@ def node_offline_event(
     now = now or utc_now()
     eid = event_id(EventKind.NODE_OFFLINE, node_id, last_seen_at.isoformat())
     offline_s = max(0.0, (now - last_seen_at).total_seconds())
-    payload = _payload(
-        settings, eid, EventKind.NODE_OFFLINE, node_id, Severity.WARNING, Severity.WARNING, now,
+    payload = NodeOfflinePayload(
+        **_common(settings, eid, EventKind.NODE_OFFLINE, node_id, Severity.WARNING, Severity.WARNING, now),
         summary=f"node {node_id} offline: not seen for {_duration(offline_s)} (since {last_seen_at:%Y-%m-%d %H:%M:%S} UTC)",
-        state=str(state), previous_state=str(state), online=False,
-        extra={"last_seen_at": last_seen_at.isoformat(), "offline_for_s": round(offline_s, 1)},
+        state=NodeState(state), previous_state=NodeState(state), online=False,
+        last_seen_at=last_seen_at, offline_for_s=round(offline_s, 1),
     )
-    return EventInput(
-        kind=EventKind.NODE_OFFLINE, severity=Severity.WARNING, payload=payload,
-        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
-    )
+    return _event(settings, payload, Severity.WARNING)
 
 
 def node_online_event(
     settings: AlertingSettings,
     *,
     node_id: str,
-    state: str,
+    state: NodeState | str,
     offline_event_id: uuid.UUID,
     offline_since: datetime,
     seen_at: datetime,
@@ -158,17 +171,13 @@ def node_online_event(
     """``node_online`` (info, routed like the offline alert it ends): the node answers again."""
     eid = event_id(EventKind.NODE_ONLINE, offline_event_id)
     down_s = max(0.0, (seen_at - offline_since).total_seconds())
-    payload = _payload(
-        settings, eid, EventKind.NODE_ONLINE, node_id, Severity.INFO, Severity.WARNING, seen_at,
+    payload = NodeOnlinePayload(
+        **_common(settings, eid, EventKind.NODE_ONLINE, node_id, Severity.INFO, Severity.WARNING, seen_at),
         summary=f"node {node_id} back online after {_duration(down_s)}, state {state}",
-        state=str(state), previous_state=str(state), online=True,
-        extra={"offline_event_id": str(offline_event_id), "offline_since": offline_since.isoformat(),
-               "offline_for_s": round(down_s, 1)},
+        state=NodeState(state), previous_state=NodeState(state), online=True,
+        offline_event_id=offline_event_id, offline_since=offline_since, offline_for_s=round(down_s, 1),
     )
-    return EventInput(
-        kind=EventKind.NODE_ONLINE, severity=Severity.INFO, payload=payload,
-        sinks=settings.sink_names_for(Severity.WARNING), id=eid,
-    )
+    return _event(settings, payload, Severity.WARNING)
 
 
 def baseline_changed_event(
@@ -180,27 +189,28 @@ def baseline_changed_event(
     previous_measurement_id: int | None,
     created_by: str,
     reason: str,
-    state: str,
+    state: NodeState | str,
     occurred_at: datetime | None = None,
 ) -> EventInput:
     """``baseline_changed`` (info): the node's DI maps are now computed against another measurement."""
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.BASELINE_CHANGED, node_id, baseline_id)
     previous = "none" if previous_measurement_id is None else f"measurement {previous_measurement_id}"
-    return _node_event(
-        settings, EventKind.BASELINE_CHANGED, eid, node_id, occurred_at,
+    payload = BaselineChangedPayload(
+        **_common(settings, eid, EventKind.BASELINE_CHANGED, node_id, Severity.INFO, Severity.INFO, occurred_at,
+                  measurement_id),
         summary=f"node {node_id} baseline changed to measurement {measurement_id} (was {previous}) by {created_by}: {reason}",
-        state=state, online=True, measurement_id=measurement_id,
-        extra={"baseline_id": baseline_id, "previous_measurement_id": previous_measurement_id,
-               "created_by": created_by, "reason": reason},
+        state=NodeState(state), previous_state=NodeState(state), online=True,
+        baseline_id=baseline_id, previous_measurement_id=previous_measurement_id, created_by=created_by, reason=reason,
     )
+    return _event(settings, payload, Severity.INFO)
 
 
 def node_decommissioned_event(
     settings: AlertingSettings,
     *,
     node_id: str,
-    state: str,
+    state: NodeState | str,
     decommissioned_at: datetime,
     by: str,
     reason: str,
@@ -208,56 +218,34 @@ def node_decommissioned_event(
     """``node_decommissioned`` (info): the gateway no longer polls the node and raises no outage
     alert for it. One decommissioning (one ``decommissioned_at``) gives one event id."""
     eid = event_id(EventKind.NODE_DECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    return _node_event(
-        settings, EventKind.NODE_DECOMMISSIONED, eid, node_id, decommissioned_at,
+    payload = NodeDecommissionedPayload(
+        **_common(settings, eid, EventKind.NODE_DECOMMISSIONED, node_id, Severity.INFO, Severity.INFO,
+                  decommissioned_at),
         summary=f"node {node_id} decommissioned by {by}: {reason} (not polled, no outage alerts)",
-        state=state, online=False,
-        extra={"decommissioned": {"at": decommissioned_at.isoformat(), "by": by, "reason": reason}},
+        state=NodeState(state), previous_state=NodeState(state), online=False,
+        decommissioned=Decommissioning(at=decommissioned_at, by=by, reason=reason),
     )
+    return _event(settings, payload, Severity.INFO)
 
 
 def node_recommissioned_event(
     settings: AlertingSettings,
     *,
     node_id: str,
-    state: str,
+    state: NodeState | str,
     decommissioned_at: datetime,
     occurred_at: datetime | None = None,
 ) -> EventInput:
     """``node_recommissioned`` (info): the node decommissioned at ``decommissioned_at`` is polled again."""
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.NODE_RECOMMISSIONED, node_id, decommissioned_at.isoformat())
-    return _node_event(
-        settings, EventKind.NODE_RECOMMISSIONED, eid, node_id, occurred_at,
+    payload = NodeRecommissionedPayload(
+        **_common(settings, eid, EventKind.NODE_RECOMMISSIONED, node_id, Severity.INFO, Severity.INFO, occurred_at),
         summary=f"node {node_id} back in service (decommissioned since {decommissioned_at:%Y-%m-%d %H:%M} UTC)",
-        state=state, online=False,
-        extra={"decommissioned": None, "decommissioned_since": decommissioned_at.isoformat()},
+        state=NodeState(state), previous_state=NodeState(state), online=False,
+        decommissioned=None, decommissioned_since=decommissioned_at,
     )
-
-
-def _node_event(
-    settings: AlertingSettings,
-    kind: EventKind,
-    eid: uuid.UUID,
-    node_id: str,
-    occurred_at: datetime,
-    *,
-    summary: str,
-    state: str,
-    online: bool,
-    extra: dict[str, Any],
-    measurement_id: int | None = None,
-    severity: Severity = Severity.INFO,
-    routing: Severity | None = None,
-) -> EventInput:
-    """An event about a node whose state it does not change, for the sinks that want ``routing``
-    (default: its severity)."""
-    routing = routing or severity
-    payload = _payload(
-        settings, eid, kind, node_id, severity, routing, occurred_at, summary=summary,
-        state=str(state), previous_state=str(state), online=online, measurement_id=measurement_id, extra=extra,
-    )
-    return EventInput(kind=kind, severity=severity, payload=payload, sinks=settings.sink_names_for(routing), id=eid)
+    return _event(settings, payload, Severity.INFO)
 
 
 def sink_disabled_event(
@@ -271,15 +259,15 @@ def sink_disabled_event(
     """``sink_disabled`` (warning): a receiver said 410 Gone; told to every other sink."""
     occurred_at = occurred_at or utc_now()
     eid = event_id(EventKind.SINK_DISABLED, sink_name, endpoint_fingerprint)
-    payload = _payload(
-        settings, eid, EventKind.SINK_DISABLED, None, Severity.WARNING, Severity.WARNING, occurred_at,
+    payload = SinkDisabledPayload(
+        **_common(settings, eid, EventKind.SINK_DISABLED, None, Severity.WARNING, Severity.WARNING, occurred_at),
         summary=f"alert sink {sink_name} disabled: its receiver answered HTTP {status_code} (Gone); "
         "change its URL in the gateway config to enable it again",
         state=None, previous_state=None, online=None,
-        extra={"sink": sink_name, "endpoint_fingerprint": endpoint_fingerprint, "status_code": status_code},
+        sink=sink_name, endpoint_fingerprint=endpoint_fingerprint, status_code=status_code,
     )
-    sinks = tuple(n for n in settings.sink_names_for(Severity.WARNING) if n != sink_name)
-    return EventInput(kind=EventKind.SINK_DISABLED, severity=Severity.WARNING, payload=payload, sinks=sinks, id=eid)
+    event = _event(settings, payload, Severity.WARNING)
+    return replace(event, sinks=tuple(n for n in event.sinks if n != sink_name))
 
 
 def sensor_fault_event(
@@ -288,7 +276,7 @@ def sensor_fault_event(
     node_id: str,
     fault: dict[str, Any],
     measurement_id: int,
-    state: str,
+    state: NodeState | str,
     faulty_receivers: list[int],
     consecutive: int,
     occurred_at: datetime | None = None,
@@ -302,16 +290,16 @@ def sensor_fault_event(
     """
     occurred_at = occurred_at or utc_now()
     receiver = _receiver(fault)
-    rx = receiver["rx_index"]
-    eid = event_id(EventKind.SENSOR_FAULT, node_id, rx, measurement_id)
-    return _node_event(
-        settings, EventKind.SENSOR_FAULT, eid, node_id, occurred_at, severity=Severity.WARNING,
-        summary=f"node {node_id} {_receiver_text(receiver)} faulty: {fault_text(receiver)} in {consecutive} "
-        "consecutive measurements; left out of the DI map, coverage reduced",
-        state=state, online=True, measurement_id=measurement_id,
-        extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
-               "consecutive_measurements": consecutive},
+    eid = event_id(EventKind.SENSOR_FAULT, node_id, receiver.rx_index, measurement_id)
+    payload = SensorFaultPayload(
+        **_common(settings, eid, EventKind.SENSOR_FAULT, node_id, Severity.WARNING, Severity.WARNING, occurred_at,
+                  measurement_id),
+        summary=f"node {node_id} {_receiver_text(receiver)} faulty: {fault_text(receiver.model_dump())} in "
+        f"{consecutive} consecutive measurements; left out of the DI map, coverage reduced",
+        state=NodeState(state), previous_state=NodeState(state), online=True,
+        receiver=receiver, faulty_receivers=sorted(faulty_receivers), consecutive_measurements=consecutive,
     )
+    return _event(settings, payload, Severity.WARNING)
 
 
 def sensor_fault_cleared_event(
@@ -322,7 +310,7 @@ def sensor_fault_cleared_event(
     raised_receiver: dict[str, Any],
     raised_measurement_id: int | None,
     measurement_id: int,
-    state: str,
+    state: NodeState | str,
     faulty_receivers: list[int],
     consecutive: int,
     occurred_at: datetime | None = None,
@@ -338,18 +326,19 @@ def sensor_fault_cleared_event(
     receiver = _receiver(raised_receiver)
     eid = event_id(EventKind.SENSOR_FAULT_CLEARED, raised_event_id)
     since = "" if raised_measurement_id is None else f" since measurement {raised_measurement_id}"
-    return _node_event(
-        settings, EventKind.SENSOR_FAULT_CLEARED, eid, node_id, occurred_at, routing=Severity.WARNING,
+    payload = SensorFaultClearedPayload(
+        **_common(settings, eid, EventKind.SENSOR_FAULT_CLEARED, node_id, Severity.INFO, Severity.WARNING,
+                  occurred_at, measurement_id),
         summary=f"node {node_id} {_receiver_text(receiver)} healthy again in {consecutive} consecutive "
-        f"measurements (was {receiver['kind']}{since}); back in the DI map",
-        state=state, online=True, measurement_id=measurement_id,
-        extra={"receiver": receiver, "faulty_receivers": sorted(faulty_receivers),
-               "consecutive_measurements": consecutive, "raised_event_id": str(raised_event_id),
-               "raised_measurement_id": raised_measurement_id},
+        f"measurements (was {receiver.kind}{since}); back in the DI map",
+        state=NodeState(state), previous_state=NodeState(state), online=True,
+        receiver=receiver, faulty_receivers=sorted(faulty_receivers), consecutive_measurements=consecutive,
+        raised_event_id=raised_event_id, raised_measurement_id=raised_measurement_id,
     )
+    return _event(settings, payload, Severity.WARNING)
 
 
-def _payload(
+def _common(
     settings: AlertingSettings,
     eid: uuid.UUID,
     kind: EventKind,
@@ -357,54 +346,36 @@ def _payload(
     severity: Severity,
     routing: Severity,
     occurred_at: datetime,
-    *,
-    summary: str,
-    state: str | None,
-    previous_state: str | None,
-    online: bool | None,
     measurement_id: int | None = None,
-    detection: dict[str, Any] | None = None,
-    location: dict[str, Any] | None = None,
-    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    links: dict[str, str] = {}
-    if node_id is not None:
-        links["node"] = node_url(settings, node_id)
-    if measurement_id is not None:
-        links["measurement"] = measurement_url(settings, measurement_id)
-        links["di_map_png"] = di_map_png_url(settings, measurement_id)
-    return {
-        "schema": PAYLOAD_SCHEMA,
-        "event_id": str(eid),
-        "kind": str(kind),
-        "node_id": node_id,
-        "severity": str(severity),
-        "routing_severity": str(routing),
-        "occurred_at": occurred_at.isoformat(),
-        "summary": summary,
-        "state": state,
-        "previous_state": previous_state,
-        "online": online,
-        "measurement_id": measurement_id,
-        "detection": detection,
-        "location": location,
-        "links": links,
-        **(extra or {}),
-    }
+    """The fields every payload has that the builders do not each decide."""
+    links = Links(
+        node=None if node_id is None else node_url(settings, node_id),
+        measurement=None if measurement_id is None else measurement_url(settings, measurement_id),
+        di_map_png=None if measurement_id is None else di_map_png_url(settings, measurement_id),
+    )
+    return dict(event_id=eid, kind=kind, node_id=node_id, severity=severity, routing_severity=routing,
+                occurred_at=occurred_at, measurement_id=measurement_id, links=links)
 
 
-def _detection(peak_di: float | None, threshold: float | None) -> dict[str, Any] | None:
+def _event(settings: AlertingSettings, payload: EventPayload, routing: Severity) -> EventInput:
+    """The outbox event of ``payload``, for the sinks that want ``routing``."""
+    return EventInput(kind=EventKind(payload.kind), severity=payload.severity, payload=payload_json(payload),
+                      sinks=settings.sink_names_for(routing), id=payload.event_id)
+
+
+def _detection(peak_di: float | None, threshold: float | None) -> Detection | None:
     if peak_di is None:
         return None
     ratio = peak_di / threshold if threshold else None
-    return {"peak_di": float(peak_di), "threshold": None if threshold is None else float(threshold),
-            "di_over_threshold": None if ratio is None else round(float(ratio), 4)}
+    return Detection(peak_di=float(peak_di), threshold=None if threshold is None else float(threshold),
+                     di_over_threshold=None if ratio is None else round(float(ratio), 4))
 
 
-def _location(axial_mm: float | None, angle_deg: float | None) -> dict[str, float] | None:
+def _location(axial_mm: float | None, angle_deg: float | None) -> Location | None:
     if axial_mm is None or angle_deg is None:
         return None
-    return {"axial_mm": round(float(axial_mm), 1), "angle_deg": round(float(angle_deg), 1)}
+    return Location(axial_mm=round(float(axial_mm), 1), angle_deg=round(float(angle_deg), 1))
 
 
 def location_text(location: dict[str, Any] | None) -> str:
@@ -421,28 +392,28 @@ def detection_text(detection: dict[str, Any] | None) -> str:
     return f"DI {detection['peak_di']:.3g} vs threshold {detection['threshold']:.3g}"
 
 
-def _receiver(fault: dict[str, Any]) -> dict[str, Any]:
+def _receiver(fault: dict[str, Any]) -> Receiver:
     """A sensor fault as it travels in events: rx_index, rx_angle_deg, kind, amplitude_ratio, delay_s."""
     try:
         rx_index, kind = int(fault["rx_index"]), str(fault["kind"])
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"a sensor fault needs an integer rx_index and a kind, got {fault!r}") from exc
-    return {
-        "rx_index": rx_index,
-        "rx_angle_deg": _number(fault.get("rx_angle_deg")),
-        "kind": kind,
-        "amplitude_ratio": _number(fault.get("amplitude_ratio")),
-        "delay_s": _number(fault.get("delay_s")),
-    }
+    return Receiver(
+        rx_index=rx_index,
+        rx_angle_deg=_number(fault.get("rx_angle_deg")),
+        kind=kind,
+        amplitude_ratio=_number(fault.get("amplitude_ratio")),
+        delay_s=_number(fault.get("delay_s")),
+    )
 
 
 def _number(value: Any) -> float | None:
     return None if value is None else float(value)
 
 
-def _receiver_text(receiver: dict[str, Any]) -> str:
-    angle = receiver.get("rx_angle_deg")
-    return f"receiver {receiver['rx_index']}" + ("" if angle is None else f" ({angle:.0f} deg)")
+def _receiver_text(receiver: Receiver) -> str:
+    angle = receiver.rx_angle_deg
+    return f"receiver {receiver.rx_index}" + ("" if angle is None else f" ({angle:.0f} deg)")
 
 
 def fault_text(receiver: dict[str, Any] | None) -> str:
@@ -459,15 +430,25 @@ def fault_text(receiver: dict[str, Any] | None) -> str:
     return str(kind)
 
 
-def _state_summary(kind, node_id, from_state, to_state, detection, location, reason=None) -> str:
+def _state_summary(
+    kind: EventKind,
+    node_id: str,
+    from_state: NodeState,
+    to_state: NodeState,
+    detection: Detection | None,
+    location: Location | None,
+    reason: str | None = None,
+) -> str:
+    di = detection_text(None if detection is None else detection.model_dump())
     if kind == EventKind.DAMAGE_RAISED:
-        return f"{to_state.upper()} on node {node_id}: {detection_text(detection)} at {location_text(location)}"
+        where = location_text(None if location is None else location.model_dump())
+        return f"{to_state.upper()} on node {node_id}: {di} at {where}"
     if kind == EventKind.DAMAGE_CLEARED:
-        return f"cleared on node {node_id}: {from_state} → ok, {detection_text(detection)}"
+        return f"cleared on node {node_id}: {from_state} → ok, {di}"
     if kind == EventKind.MONITORING_BLIND:
         why = reason or "no valid baseline for current conditions"
         return f"node {node_id} cannot assess the pipe: {why} (was {from_state})"
-    return f"node {node_id} monitoring again: no_valid_baseline → ok, {detection_text(detection)}"
+    return f"node {node_id} monitoring again: no_valid_baseline → ok, {di}"
 
 
 def _duration(seconds: float) -> str:

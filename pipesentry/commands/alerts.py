@@ -1,8 +1,10 @@
-"""`pipesentry alerts deliver --config gateway.toml`: run alert delivery alone (no node polling).
+"""`pipesentry alerts deliver --config gateway.toml`: run alert delivery alone (no node polling);
+`pipesentry alerts schema`: print the JSON Schema of the alert payload.
 
-For a deployment that runs delivery apart from the gateway, and for draining the outbox by
-hand; it reads the same config and database. Exit codes: 0 stopped by SIGTERM/SIGINT, 2 bad
-config or database. ``python -m alerts deliver`` is the same command (alerts/__main__.py).
+Delivery alone is for a deployment that runs it apart from the gateway, and for draining the
+outbox by hand; it reads the same config and database. Exit codes: 0 stopped by
+SIGTERM/SIGINT, 2 bad config or database. ``python -m alerts deliver`` is the same command
+(alerts/__main__.py).
 """
 from __future__ import annotations
 
@@ -54,3 +56,13 @@ def deliver(
         pass
     delivery.join(settings.shutdown_timeout_s)
     database.dispose()
+
+
+@alerts_app.command("schema")
+def schema() -> None:
+    """Print the JSON Schema of the payload every sink is given (docs/alerting.md)."""
+    import json
+
+    from alerts.payloads import payload_json_schema
+
+    typer.echo(json.dumps(payload_json_schema(), indent=2))
