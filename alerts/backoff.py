@@ -1,9 +1,12 @@
-"""Retry timing: exponential backoff with full jitter, and the receiver's Retry-After."""
+"""Alert delivery's retry timing: full-jitter exponential backoff (retry_timing), with the receiver's
+Retry-After as a lower bound, itself capped."""
 from __future__ import annotations
 
 import random
 from datetime import UTC, datetime
 from email.utils import parsedate_to_datetime
+
+from retry_timing.backoff import Backoff
 
 
 def retry_delay_s(
@@ -20,8 +23,7 @@ def retry_delay_s(
     Full jitter (uniform in [0, min(cap, base * 2**(attempts-1))]) spreads retries of many
     deliveries after an outage; a receiver's Retry-After is a lower bound, itself capped.
     """
-    exponent = min(max(attempts - 1, 0), 62)  # 2**62 * base is past any cap; avoids float overflow
-    delay = rng.uniform(0.0, min(cap_s, base_s * 2.0**exponent))
+    delay = Backoff(base_s, cap_s, "full").delay_s(attempts, rng)
     if retry_after_s is not None:
         delay = max(delay, min(max(retry_after_s, 0.0), retry_after_max_s))
     return delay

@@ -40,6 +40,7 @@ from protocol.messages import (
     TraceMeta,
     decode_message,
 )
+from retry_timing.backoff import Backoff
 
 __all__ = [
     "DiTransfer",
@@ -157,8 +158,8 @@ class NodeClient:
         self.url = url
         self.timeout_s = timeout_s
         self.retries = retries
-        self.backoff_s = backoff_s
-        self.backoff_max_s = backoff_max_s
+        # Equal jitter: a retried command always leaves the node time to finish what it is doing.
+        self.retry_backoff = Backoff(backoff_s, backoff_max_s, "equal")
         self.shot_period_s = shot_period_s
         self.compute_timeout_s = compute_timeout_s
         self.transfer_rounds = transfer_rounds
@@ -270,10 +271,7 @@ class NodeClient:
         self._transport.write(encode_frame(Frame(message.TYPE, request_id, message.encode(), seq=self._seq)))
 
     def _backoff(self, attempt: int) -> None:
-        # Exponential with equal jitter: between half and all of the capped delay, never near zero,
-        # so a retried command always leaves the node time to finish what it is doing.
-        cap = min(self.backoff_max_s, self.backoff_s * 2 ** (attempt - 1))
-        time.sleep(self._rng.uniform(0.5 * cap, cap))
+        time.sleep(self.retry_backoff.delay_s(attempt, self._rng))
 
     def _replies(self, request_id: int, timeout_s: float):
         """Yield (frame, message) replies to ``request_id`` until ``timeout_s`` passes without one."""

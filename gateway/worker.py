@@ -48,8 +48,11 @@ from gateway.transport import PORT_ERRORS
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
 from imaging.pipeline import Assessment, assess
+from retry_timing.backoff import Backoff
 
 log = logging.getLogger("pipesentry.gateway")
+
+REOPEN_BACKOFF_BASE_S = 0.5  # the first retry after a failed cycle; doubling up to reopen_backoff_max_s
 
 @dataclass
 class NodeCounters:
@@ -95,7 +98,8 @@ class NodeWorker:
         self.db = db
         self.heartbeats = heartbeats
         self.stop = stop
-        self.backoff_max_s = backoff_max_s
+        # No jitter: the port is this node's alone, so there is nothing to spread.
+        self.reopen_backoff = Backoff(min(REOPEN_BACKOFF_BASE_S, backoff_max_s), backoff_max_s, "none")
         self.alerting = alerting or AlertingSettings()
         self.client_factory = client_factory
         self.counters = NodeCounters()
@@ -164,9 +168,8 @@ class NodeWorker:
                         extra={"measurement_id": outcome.measurement_id, "state": outcome.state.value},
                     )
                 self.heartbeats.beat(self.name)
-                if failures:
-                    # Exponential backoff (USB re-enumeration, a rebooting node), capped.
-                    next_due = time.monotonic() + min(self.backoff_max_s, 0.5 * 2 ** min(failures - 1, 16))
+                if failures:  # USB re-enumeration, a rebooting node: try again later and later
+                    next_due = time.monotonic() + self.reopen_backoff.delay_s(failures)
                 else:
                     next_due = max(started + self.settings.interval_s, time.monotonic())
             self._close()

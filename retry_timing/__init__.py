@@ -1,0 +1,1 @@
+"""When to try again: exponential backoff with a chosen jitter, for every retry in PipeSentry (pure)."""
