@@ -5,6 +5,12 @@ Each node runs in its own thread: bytes in -> FrameDecoder -> MockNode.handle ->
 printed /dev/pts/N (or the stable ``link_dir/<node_id>`` symlink). A disconnect closes the
 pty (the gateway sees PortVanished) and, ``reconnect_after_s`` later, opens a NEW one; the
 node reboots then, as a USB-powered board does.
+
+Everything that happens in the node's time runs on its injectable ``clock`` (seconds,
+monotonic): the scenario (defects appearing, temperature drifting), the fault schedule
+(disconnects, reconnects, stalls) and the time an averaged ACQUIRE takes. A test passes a
+clock it advances itself instead of sleeping. Only the line's byte rate (``pace``) is real
+time: it is what the gateway's serial timeouts see.
 """
 from __future__ import annotations
 
@@ -139,10 +145,11 @@ class NodeRunner(threading.Thread):
     def __init__(
         self, scenario: NodeScenario, kind: Literal["pty", "tcp"] = "pty", port: int = 0, baud: int = 230400,
         pace: bool = False, link_dir: Path | None = None, on_port: Callable[[str, str], None] | None = None,
-        stop: threading.Event | None = None,
+        stop: threading.Event | None = None, clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(name=f"mocknode-{scenario.node_id}", daemon=True)
-        self.node = MockNode(scenario)
+        self.clock = clock
+        self.node = MockNode(scenario, clock)
         self.faults = scenario.faults
         self.kind = kind
         self.tcp_port = port
@@ -196,7 +203,7 @@ class NodeRunner(threading.Thread):
             next_disconnect = self._next_disconnect_at()
             decoder = FrameDecoder()
             while not self.stop_event.is_set():
-                if next_disconnect is not None and time.monotonic() >= next_disconnect:
+                if next_disconnect is not None and self.clock() >= next_disconnect:
                     self._disconnect()
                     decoder = FrameDecoder()
                     next_disconnect = self._next_disconnect_at()
@@ -219,18 +226,26 @@ class NodeRunner(threading.Thread):
 
     def _next_disconnect_at(self) -> float | None:
         every = self.faults.disconnect_every_s
-        return time.monotonic() + every if every > 0 else None
+        return self.clock() + every if every > 0 else None
+
+    def _wait_node_s(self, seconds: float) -> bool:
+        """Let ``seconds`` of the node's clock pass (True if the server is stopped meanwhile)."""
+        deadline = self.clock() + seconds
+        while (left := deadline - self.clock()) > 0:
+            if self.stop_event.wait(min(left, _POLL_S)):
+                return True
+        return self.stop_event.is_set()
 
     def _stalls(self) -> bool:
         if self.faults.stall_probability > 0 and self._rng.random() < self.faults.stall_probability:
-            self.stop_event.wait(self.faults.stall_s)  # the node hangs; requests pile up unread
+            self._wait_node_s(self.faults.stall_s)  # the node hangs; requests pile up unread
             return True
         return False
 
     def _answer(self, request) -> None:
         replies = self.node.handle(request)
         if self.pace and self.node.last_service_s > 0:
-            self.stop_event.wait(self.node.last_service_s)  # ACQUIRE averaging takes real time
+            self._wait_node_s(self.node.last_service_s)  # ACQUIRE averaging takes the node's time
         for frame in replies:
             if frame.msg_type == MsgType.BULK_CHUNK and self._rng.random() < self.faults.reboot_probability:
                 self._reboot()
@@ -249,7 +264,7 @@ class NodeRunner(threading.Thread):
 
     def _disconnect(self) -> None:
         self._close_port()
-        if self.stop_event.wait(self.faults.reconnect_after_s):
+        if self._wait_node_s(self.faults.reconnect_after_s):
             return
         self.node.boot()  # USB-powered: unplugging is a power cycle
         self.reboots += 1
@@ -284,7 +299,7 @@ class NodeRunner(threading.Thread):
             return
         for i in range(0, len(data), _WRITE_SLICE_BYTES):
             piece = data[i : i + _WRITE_SLICE_BYTES]
-            now = time.monotonic()
+            now = time.monotonic()  # real time: the byte rate the gateway's timeouts see
             self._line_free_at = max(self._line_free_at, now)
             if self.stop_event.wait(max(0.0, self._line_free_at - now)):
                 return
@@ -299,8 +314,9 @@ class MockNodeServer:
     def __init__(
         self, scenarios: list[NodeScenario], kind: Literal["pty", "tcp"] = "pty", base_port: int = 0,
         baud: int = 230400, pace: bool = False, link_dir: Path | None = None,
-        on_port: Callable[[str, str], None] | None = None,
+        on_port: Callable[[str, str], None] | None = None, clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """``clock``: the nodes' time (seconds, monotonic), shared by all of them; see the module's docstring."""
         if link_dir is not None:
             link_dir.mkdir(parents=True, exist_ok=True)
         self.stop_event = threading.Event()
@@ -309,7 +325,7 @@ class MockNodeServer:
             for i, scenario in enumerate(scenarios):
                 port = base_port + i if base_port else 0
                 self.runners[scenario.node_id] = NodeRunner(
-                    scenario, kind, port, baud, pace, link_dir, on_port, self.stop_event)
+                    scenario, kind, port, baud, pace, link_dir, on_port, self.stop_event, clock)
         except Exception:
             self.stop_event.set()
             for runner in self.runners.values():

@@ -18,6 +18,7 @@ from mocknode.faults import FaultSpec
 from mocknode.scenario import NodeScenario, default_scenario
 from mocknode.server import MockNodeServer
 from protocol.messages import ErrorCode
+from tests.support.clocks import ManualClock
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -26,8 +27,8 @@ def make_scenario(**faults) -> NodeScenario:
     return default_scenario(1).nodes[0].model_copy(update={"faults": FaultSpec(**faults)})
 
 
-def serve(kind: str = "pty", link_dir=None, **faults) -> MockNodeServer:
-    return MockNodeServer([make_scenario(**faults)], kind=kind, link_dir=link_dir)
+def serve(kind: str = "pty", link_dir=None, clock=time.monotonic, **faults) -> MockNodeServer:
+    return MockNodeServer([make_scenario(**faults)], kind=kind, link_dir=link_dir, clock=clock)
 
 
 def quick_client(url: str, **kwargs) -> NodeClient:
@@ -79,16 +80,21 @@ def test_stalls_are_survived_by_retries_and_each_acquisition_runs_once():
 
 @pytest.mark.parametrize("kind", ["pty", "tcp"])
 def test_disconnect_is_port_vanished_and_reopen_reaches_the_rebooted_node(kind, tmp_path):
-    with serve(kind, link_dir=tmp_path, disconnect_every_s=0.8, reconnect_after_s=0.1) as server:
+    clock = ManualClock()  # the node's time: the disconnect comes when the test says, not after a sleep
+    with serve(kind, link_dir=tmp_path, clock=clock, disconnect_every_s=600.0, reconnect_after_s=30.0) as server:
         runner = server.runners["node-01"]
         url = str(tmp_path / "node-01") if kind == "pty" else runner.url
         with quick_client(url) as client:
             first_boot = client.info().boot_id
+            assert [client.status().boot_id for _ in range(3)] == [first_boot] * 3  # not yet: the clock stands
+            clock.advance(600.0)
             deadline = time.monotonic() + 5.0
             with pytest.raises(PortVanished):
                 for _ in range(100_000):
                     assert time.monotonic() < deadline, "the port never vanished"
                     client.status()
+            assert not runner.wait_for_generation(2, timeout_s=0.2)  # unplugged for reconnect_after_s of node time
+            clock.advance(30.0)
             assert runner.wait_for_generation(2, timeout_s=5.0)
             client.reopen()
             info = client.info()
