@@ -1,20 +1,24 @@
-"""``pipesentry mock-node``: serve simulated FPGA nodes on pseudo-terminals or TCP until SIGINT/SIGTERM."""
+"""``pipesentry mock-node``: serve simulated FPGA nodes on pseudo-terminals or TCP until SIGINT/SIGTERM.
+
+The physics and the server are imported when the command runs, not when the ``pipesentry``
+command line is built: ``pipesentry --help`` must not pay for scipy.
+"""
 from __future__ import annotations
 
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from pydantic import ValidationError
 
-from mocknode.faults import FaultSpec
-from mocknode.scenario import NodeScenario, ScenarioError, default_scenario, load_scenario
-from mocknode.server import MockNodeServer, ServerError
+if TYPE_CHECKING:
+    from mocknode.scenario import NodeScenario
 
 
 def _with_faults(node: NodeScenario, overrides: dict) -> NodeScenario:
+    from mocknode.faults import FaultSpec
+
     if not overrides:
         return node
     faults = FaultSpec(**{**node.faults.model_dump(), **overrides})
@@ -44,6 +48,11 @@ def mock_node(
     protocol_version: Annotated[int | None, typer.Option(help="fault: announce this protocol version")] = None,
 ) -> None:
     """Serve simulated nodes; prints "<node_id> <port>" for every port it opens (again after a reconnect)."""
+    from pydantic import ValidationError
+
+    from mocknode.scenario import ScenarioError, default_scenario, load_scenario
+    from mocknode.server import MockNodeServer, ServerError
+
     overrides = {
         key: value for key, value in {
             "corrupt_byte_rate": corrupt_byte_rate, "drop_byte_rate": drop_byte_rate,

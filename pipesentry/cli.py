@@ -1,8 +1,12 @@
-"""The ``pipesentry`` command: one subcommand per job, each implemented in pipesentry/commands/."""
+"""The ``pipesentry`` command: one subcommand per job, each implemented in pipesentry/commands/
+(the mock node's in mocknode/cli.py). A command imports what it runs inside its function, so
+building the command line (``pipesentry --help``) imports no numpy, scipy or SQLAlchemy.
+"""
 from __future__ import annotations
 
 import typer
 
+from mocknode.cli import mock_node
 from pipesentry.commands.alerts import alerts_app
 from pipesentry.commands.analyze import analyze
 from pipesentry.commands.api import api
@@ -29,10 +33,4 @@ app.command()(gateway)
 app.command()(api)
 app.add_typer(apikey_app, name="apikey")
 app.add_typer(alerts_app, name="alerts")
-
-try:  # the mock node registers itself once its package is in place
-    from mocknode.cli import mock_node
-except ImportError:  # pragma: no cover - only while the mock node is being built
-    pass
-else:
-    app.command("mock-node")(mock_node)
+app.command("mock-node")(mock_node)
