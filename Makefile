@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(BIN)/pipesentry demo
 
 test: $(STAMP) lint
-	bash scripts/ensure-chromium.sh
+	bash scripts/ensure-test-deps.sh
 	$(BIN)/python -m pytest
 
 # The unit tests only (no real processes, PostgreSQL or browser): about a minute.

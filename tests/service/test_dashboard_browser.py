@@ -24,7 +24,7 @@ WAIT_MS = 30_000
 @pytest.fixture(scope="module")
 def browser():
     if not CHROMIUM.exists() and shutil.which("chromium") is None:
-        message = "headless Chromium not installed (scripts/ensure-chromium.sh installs it)"
+        message = "headless Chromium not installed (scripts/ensure-test-deps.sh installs it)"
         if in_ci():
             pytest.fail(message)
         pytest.skip(message)
