@@ -1,8 +1,9 @@
 """Prometheus metrics of alert delivery per sink, read from the outbox at scrape time.
 
-For the API's ``/metrics``: ``registry.register(AlertDeliveryCollector(gate.get))``. The
-fleet-wide totals (``pipesentry_alert_deliveries{status}``) are the API's own; these add
-the per-sink view that ``docker/prometheus/alerts.yml`` alerts on.
+For the API's ``/metrics``: ``registry.register(AlertDeliveryCollector(gate.get))``: the stored
+deliveries per sink and status (fleet-wide totals are ``sum without (sink)``), which
+``docker/prometheus/alerts.yml`` alerts on. The attempts a gateway makes are its own metrics
+(gateway/metrics.py).
 ``SensorFaultCollector(gate.get)`` adds ``pipesentry_node_faulty_receivers{node}``: the
 receivers of each node in service with an open ``sensor_fault`` alert (0 for every other node).
 """

@@ -1,25 +1,32 @@
-"""Prometheus metrics read from the database at scrape time (a custom collector, no global state)."""
+"""Prometheus metrics read from the database at scrape time (a custom collector, no global state).
+
+The API's ``/metrics`` is the stored state of the fleet (what the database says); the gateway's
+own counters (cycles, retries, delivery attempts) are on its metrics port (gateway/metrics.py).
+"""
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
 
-from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client import CollectorRegistry, Info, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 
 from alerts.metrics import AlertDeliveryCollector, SensorFaultCollector
 from db.errors import StorageError
-from db.models import DeliveryRow, DeliveryStatus, MeasurementRow, NodeState
+from db.models import MeasurementRow, NodeState
 from db.nodes import list_nodes
+from db.release import release_labels
 from service.database import DatabaseGate
 
 log = logging.getLogger("pipesentry.api")
+# A node in these states has no threshold in force: a stored one belongs to the baseline before.
+UNTHRESHOLDED_STATES = frozenset({NodeState.COMMISSIONING, NodeState.CALIBRATING})
 
 
 class FleetCollector(Collector):
-    """Per node in service: up, state, DI peak, threshold, last seen/measured, serial counters; deliveries by status."""
+    """Per node in service: up, state, DI peak, threshold, last seen/measured, serial counters."""
 
     def __init__(self, gate: DatabaseGate) -> None:
         self.gate = gate
@@ -44,10 +51,11 @@ class FleetCollector(Collector):
         state = GaugeMetricFamily(
             "pipesentry_node_state", "1 for the node's current state (one series per state)", labels=["node", "state"]
         )
-        damage = GaugeMetricFamily("pipesentry_node_damage", "1 if the node's state is damage", labels=labels)
         peak = GaugeMetricFamily("pipesentry_node_di_peak", "peak damage index of the latest monitor measurement",
                                  labels=labels)
-        threshold = GaugeMetricFamily("pipesentry_node_di_threshold", "the node's damage threshold", labels=labels)
+        threshold = GaugeMetricFamily("pipesentry_node_di_threshold",
+                                      "the node's damage threshold (absent while it has none: commissioning, calibrating)",
+                                      labels=labels)
         seen = GaugeMetricFamily("pipesentry_node_last_seen_timestamp_seconds", "when the node last answered",
                                  labels=labels)
         measured = GaugeMetricFamily("pipesentry_node_last_measurement_timestamp_seconds",
@@ -55,8 +63,6 @@ class FleetCollector(Collector):
         errors = CounterMetricFamily("pipesentry_node_link_events",
                                      "serial-link and gateway counters of the node (reset when the node reboots)",
                                      labels=["node", "counter"])
-        deliveries = GaugeMetricFamily("pipesentry_alert_deliveries", "alert deliveries by status", labels=["status"])
-        dead = GaugeMetricFamily("pipesentry_alert_deliveries_dead", "alert deliveries given up on (dead letters)")
         with database.session() as session:
             # A decommissioned node's series end: no "node down" alert for a node taken out of service.
             nodes = list_nodes(session, include_decommissioned=False)
@@ -65,34 +71,28 @@ class FleetCollector(Collector):
                     select(MeasurementRow.node_id, func.max(MeasurementRow.acquired_at)).group_by(MeasurementRow.node_id)
                 ).all()
             )
-            by_status = dict(
-                session.execute(select(DeliveryRow.status, func.count()).group_by(DeliveryRow.status)).all()
-            )
         for node in nodes:
             name = [node.node_id]
             up.add_metric(name, 1.0 if node.online else 0.0)
             for candidate in NodeState:
                 state.add_metric([node.node_id, candidate.value], 1.0 if node.state == candidate else 0.0)
-            damage.add_metric(name, 1.0 if node.state == NodeState.DAMAGE else 0.0)
             if node.latest_di_peak is not None:
                 peak.add_metric(name, node.latest_di_peak)
-            if node.latest_threshold is not None:
+            if node.latest_threshold is not None and node.state not in UNTHRESHOLDED_STATES:
                 threshold.add_metric(name, node.latest_threshold)
             seen.add_metric(name, node.last_seen_at.timestamp())
             if node.node_id in last_measured:
                 measured.add_metric(name, last_measured[node.node_id].timestamp())
             for counter, value in sorted((node.error_counters or {}).items()):
                 errors.add_metric([node.node_id, str(counter)], float(value))
-        for status in DeliveryStatus:
-            deliveries.add_metric([status.value], float(by_status.get(status, 0)))
-        dead.add_metric([], float(by_status.get(DeliveryStatus.DEAD, 0)))
-        return [up, state, damage, peak, threshold, seen, measured, errors, deliveries, dead]
+        return [up, state, peak, threshold, seen, measured, errors]
 
 
 def metrics_registry(gate: DatabaseGate) -> CollectorRegistry:
     """The fleet's metrics, and alerting's: deliveries per sink (docker/prometheus/alerts.yml alerts on
-    them) and each node's faulty receivers."""
+    them) and each node's faulty receivers; ``pipesentry_build_info``."""
     registry = CollectorRegistry(auto_describe=False)
+    Info("pipesentry_build", "the running PipeSentry release", registry=registry).info(release_labels())
     registry.register(FleetCollector(gate))
     registry.register(AlertDeliveryCollector(gate.get))
     registry.register(SensorFaultCollector(gate.get))
@@ -101,3 +101,4 @@ def metrics_registry(gate: DatabaseGate) -> CollectorRegistry:
 
 def exposition(registry: CollectorRegistry) -> bytes:
     return generate_latest(registry)
+

@@ -19,11 +19,14 @@ from pathlib import Path
 import httpx
 import pytest
 import uvicorn
+from prometheus_client import generate_latest
 
 from db.api_keys import create_api_key
-from db.database import open_database
+from db.database import Database, open_database
 from db.models import NodeRow, NodeState, Role
 from service.app import create_app
+from service.database import DatabaseGate
+from service.metrics import metrics_registry
 from service.settings import ApiSettings
 from tests.support.process_harness import (
     Proc,
@@ -243,6 +246,15 @@ def assert_problem(response: httpx.Response, status: int, slug: str) -> dict:
     assert body["status"] == status and body["title"]
     assert "Traceback" not in response.text and 'File "' not in response.text
     return body
+
+
+def api_metrics_text(database: Database) -> str:
+    """What the API's /metrics says about ``database``: its registry over its own handle on the file."""
+    gate = DatabaseGate(database.engine.url.render_as_string(hide_password=False), busy_timeout_ms=1000)
+    try:
+        return generate_latest(metrics_registry(gate)).decode()
+    finally:
+        gate.dispose()
 
 
 def in_ci() -> bool:
