@@ -16,6 +16,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Protocol
 
@@ -74,6 +75,15 @@ class SinkTransport(Protocol):
         """Release connections."""
 
 
+@dataclass
+class SinkStats:
+    """What one sink's thread did since the process started (the gateway's metrics read it)."""
+
+    attempts: int = 0  # outbox deliveries tried (Alertmanager's periodic re-sends are not counted)
+    failures: int = 0  # of which failed (timeout, refused, 5xx, 410, ...)
+    last_delivered_at: datetime | None = None  # when a receiver last acknowledged a delivery
+
+
 class Beats(Protocol):
     def beat(self, name: str) -> None: ...
 
@@ -120,6 +130,7 @@ class SinkWorker:
         self.rng = rng or random.Random()
         self.clock = clock
         self.disabled = False
+        self.stats = SinkStats()
         self.thread = threading.Thread(target=self.run, name=f"alerts-{sink.name}", daemon=True)
 
     @property
@@ -169,6 +180,7 @@ class SinkWorker:
             if not claim(session, item, now=now, lease_s=lease_s(self.sink)):
                 return 0
         tries = item.attempts + 1
+        self.stats.attempts += 1
         try:
             self.transport.send(item)
         except EndpointGone as exc:
@@ -183,12 +195,14 @@ class SinkWorker:
             return 1
         with self.database.write() as session:
             mark_delivered(session, item.delivery_id)
+        self.stats.last_delivered_at = self.clock()
         log.info("alerts %s: delivered %s %s (node %s, try %d)", self.sink.name, item.kind, item.event_id,
                  item.node_id, tries)
         return 1
 
     def _failed(self, item: OutboxEvent, tries: int, error: str, retry_after_s: float | None) -> None:
         now = self.clock()
+        self.stats.failures += 1
         if tries >= self.sink.max_attempts:
             retry_at = None
             log.error("alerts %s: giving up on %s %s after %d tries: %s", self.sink.name, item.kind, item.event_id,
@@ -212,6 +226,7 @@ class SinkWorker:
         reason = f"sink disabled: {exc}"
         log.error("alerts %s: receiver answered %d Gone; sink disabled until its endpoint is changed",
                   self.sink.name, exc.status_code)
+        self.stats.failures += 1
         with self.database.write() as session:
             mark_failed(session, item.delivery_id, reason, retry_at=None)
             event = sink_disabled_event(

@@ -40,6 +40,14 @@ class LoggingSettings(_Section):
     json_lines: bool = Field(False, alias="json", description="one JSON object per log line")
 
 
+class MetricsSettings(_Section):
+    """The gateway's own Prometheus metrics (cycles, retries, delivery attempts; docs/gateway.md)."""
+
+    enabled: bool = True
+    host: str = Field("127.0.0.1", min_length=1, description="listen address; 0.0.0.0 to be scraped from elsewhere")
+    port: int = Field(9646, ge=0, le=65535, description="0: any free port (the log says which)")
+
+
 class ThresholdSettings(_Section):
     """Damage flagging on the DI peak (normalised DI, see docs/imaging.md)."""
 
@@ -134,6 +142,7 @@ class GatewaySettings(BaseSettings):
     database: DatabaseSettings = DatabaseSettings()
     retention: RetentionSettings = RetentionSettings()
     logging: LoggingSettings = LoggingSettings()
+    metrics: MetricsSettings = MetricsSettings()
     alerting: AlertingSettings = AlertingSettings()  # [alerting] and [[alerting.sinks]], see docs/alerting.md
     reopen_backoff_max_s: float = Field(60.0, gt=0, description="cap of the exponential backoff to reopen a port")
     shutdown_timeout_s: float = Field(5.0, gt=0)

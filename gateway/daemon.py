@@ -12,6 +12,7 @@ from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageError
 from db.retention import prune_traces
 from gateway.config import GatewaySettings
+from gateway.metrics import MetricsServer, gateway_registry, serve_metrics
 from gateway.watchdog import Heartbeats, sd_notify, watchdog_interval_s
 from gateway.worker import NodeWorker
 
@@ -38,6 +39,8 @@ class Gateway:
         self._retention = threading.Thread(target=self._retention_loop, name=RETENTION, daemon=True)
         # Alert delivery: one thread per sink plus the outage watcher; none of them waits on a node or on each other.
         self.alerting = AlertDelivery(settings.alerting, db, stop=self.stop, heartbeats=self.heartbeats)
+        self.metrics_registry = gateway_registry(self.workers, self.alerting.sink_workers, db)
+        self.metrics: MetricsServer | None = None
 
     def stall_limits_s(self) -> dict[str, float]:
         """How long each loop may go without a beat before the watchdog pings stop."""
@@ -57,6 +60,7 @@ class Gateway:
             w.thread.start()
         self._retention.start()
         self.alerting.start()
+        self.metrics = serve_metrics(self.settings.metrics, self.metrics_registry)
 
     def _retention_loop(self) -> None:
         r = self.settings.retention
@@ -90,6 +94,8 @@ class Gateway:
             w.thread.join(max(0.0, deadline - time.monotonic()))
         self._retention.join(max(0.0, deadline - time.monotonic()))
         self.alerting.join(max(0.0, deadline - time.monotonic()))
+        if self.metrics is not None:
+            self.metrics.close()
         self.db.dispose()
 
 

@@ -43,7 +43,15 @@ from gateway.decision import (
 )
 from gateway.flagging import FlagState, restored_flag_state, threshold_for
 from gateway.logs import node_context
-from gateway.node_client import NodeClient, NodeClientError, PortVanished, ProtocolMismatch
+from gateway.node_client import (
+    NodeClient,
+    NodeClientError,
+    NodeRebooted,
+    NodeTimeout,
+    PortVanished,
+    ProtocolMismatch,
+    TransferError,
+)
 from gateway.transport import PORT_ERRORS
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
@@ -59,14 +67,23 @@ class NodeCounters:
     """Gateway-side error counts for one node (stored with the node's own counters)."""
 
     cycles: int = 0
-    failures: int = 0
+    failures: int = 0  # the node did not answer as it should (of which timeouts and transfer_errors)
     timeouts: int = 0
     transfer_errors: int = 0
     port_reopens: int = 0
     storage_errors: int = 0
+    internal_errors: int = 0  # bugs, logged with their traceback
+    retries: int = 0  # commands and chunks sent again, over the connections closed so far
 
     def as_dict(self) -> dict[str, int]:
-        return {f"gateway_{k}": v for k, v in self.__dict__.items()}
+        return {f"gateway_{k}": v for k, v in self.__dict__.items() if k != "retries"}
+
+    def count_failure(self, exc: NodeClientError) -> None:
+        self.failures += 1
+        if isinstance(exc, NodeTimeout):
+            self.timeouts += 1
+        elif isinstance(exc, TransferError | NodeRebooted):
+            self.transfer_errors += 1
 
 
 @dataclass
@@ -109,11 +126,23 @@ class NodeWorker:
         self._threshold_cache: tuple[int | None, float | None] | None = None  # (active baseline, threshold)
         self._out_of_service = False
         self._decommissioned_at: datetime | None = None  # of the decommissioning this worker saw (for node_recommissioned)
+        self._connection_lock = threading.Lock()  # the metrics thread reads the open connection's retries
         self.thread = threading.Thread(target=self.run, name=f"node-{settings.id}", daemon=True)
 
     @property
     def name(self) -> str:
         return self.thread.name
+
+    @property
+    def out_of_service(self) -> bool:
+        """Decommissioned by an admin, as this worker last noticed."""
+        return self._out_of_service
+
+    def retries_total(self) -> int:
+        """Commands and chunks sent again since the worker started, over every connection."""
+        with self._connection_lock:
+            conn = self.conn
+            return self.counters.retries + (conn.client.retried if conn is not None else 0)
 
     # ------------------------------------------------------------------ loop
     def run(self) -> None:
@@ -143,7 +172,7 @@ class NodeWorker:
                     self._drop_connection(f"protocol mismatch: {exc}")
                 except NodeClientError as exc:
                     failures += 1
-                    self.counters.failures += 1
+                    self.counters.count_failure(exc)
                     log.warning("cycle failed: %s: %s", type(exc).__name__, exc)
                 except StorageUnavailable as exc:
                     failures += 1
@@ -151,7 +180,7 @@ class NodeWorker:
                     log.error("storage unavailable, measurement dropped, will retry: %s", exc)
                 except Exception:  # a bug must not kill the node's worker; it is logged with its traceback
                     failures += 1
-                    self.counters.failures += 1
+                    self.counters.internal_errors += 1
                     log.exception("unexpected error in the poll cycle")
                 else:
                     failures = 0
@@ -221,11 +250,12 @@ class NodeWorker:
             pass  # the node may not be known yet (never answered), or storage is down: nothing to mark
 
     def _close(self) -> None:
-        if self.conn is not None:
-            try:
-                self.conn.client.close()
-            finally:
-                self.conn = None
+        with self._connection_lock:
+            conn, self.conn = self.conn, None
+            if conn is not None:
+                self.counters.retries += conn.client.retried
+        if conn is not None:
+            conn.client.close()
 
     # ------------------------------------------------------------------ one cycle
     def connect(self) -> Connection:

@@ -104,7 +104,10 @@ def start_gateway(
 
 
 def gateway_config(db_path: Path, nodes: list[dict], **top) -> str:
-    """A gateway TOML with the given nodes (dicts of NodeSettings fields; nested dicts become tables)."""
+    """A gateway TOML with the given nodes (dicts of NodeSettings fields; nested dicts become tables).
+
+    The gateway's metrics listen on any free port unless ``metrics`` says otherwise (tests run side by side)."""
+    top = {"metrics": {"port": 0}, **top}
     lines = [f'[database]\nurl = "sqlite:///{db_path}"\n']
     for key, value in top.items():
         if isinstance(value, dict):
