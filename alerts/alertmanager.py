@@ -52,6 +52,8 @@ _STATE_ALERTS = {
 }
 OFFLINE_ALERT = "PipeSentryNodeOffline"
 SENSOR_FAULT_ALERT = "PipeSentrySensorFault"
+# Every alert name this sink pushes (docker/alertmanager/alertmanager.yml routes and inhibits them).
+ALERT_NAMES = tuple(dict.fromkeys([*(name for name, _ in _STATE_ALERTS.values()), OFFLINE_ALERT, SENSOR_FAULT_ALERT]))
 
 
 def state_labels(node_id: str, state: str) -> dict[str, str]:
