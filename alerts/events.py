@@ -19,6 +19,7 @@ from alerts.payloads import (
     BaselineChangedPayload,
     Decommissioning,
     Detection,
+    EndedBy,
     EventPayload,
     Links,
     Location,
@@ -62,6 +63,7 @@ ALARM_STATES = {NodeState.SUSPECTED: Severity.WARNING, NodeState.DAMAGE: Severit
 STATE_KINDS = frozenset(
     {EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED, EventKind.MONITORING_BLIND, EventKind.MONITORING_RESTORED}
 )
+DAMAGE_KINDS = frozenset({EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED})
 OUTAGE_KINDS = frozenset({EventKind.NODE_OFFLINE, EventKind.NODE_ONLINE})
 # Kinds about one receiver of a node (payload "receiver": {rx_index, rx_angle_deg, kind, ...}).
 SENSOR_FAULT_KINDS = frozenset({EventKind.SENSOR_FAULT, EventKind.SENSOR_FAULT_CLEARED})
@@ -72,16 +74,22 @@ def event_id(*parts: object) -> uuid.UUID:
     return uuid.uuid5(EVENT_NAMESPACE, "/".join(str(p) for p in parts))
 
 
-def measurement_url(settings: AlertingSettings, measurement_id: int) -> str:
-    return f"{settings.api_base_url}/api/v1/measurements/{measurement_id}"
+def measurement_url(api_base_url: str, measurement_id: int) -> str:
+    return f"{api_base_url}/api/v1/measurements/{measurement_id}"
 
 
-def di_map_png_url(settings: AlertingSettings, measurement_id: int) -> str:
-    return f"{settings.api_base_url}/api/v1/measurements/{measurement_id}/di-maps/gateway.png"
+def di_map_png_url(api_base_url: str, measurement_id: int) -> str:
+    return f"{api_base_url}/api/v1/measurements/{measurement_id}/di-maps/gateway.png"
 
 
-def node_url(settings: AlertingSettings, node_id: str) -> str:
-    return f"{settings.api_base_url}/api/v1/nodes/{node_id}"
+def node_url(api_base_url: str, node_id: str) -> str:
+    return f"{api_base_url}/api/v1/nodes/{node_id}"
+
+
+def measurement_links(api_base_url: str, measurement_id: int) -> dict[str, str]:
+    """The API links of a measurement: its record and its gateway DI map (PNG)."""
+    return {"measurement": measurement_url(api_base_url, measurement_id),
+            "di_map_png": di_map_png_url(api_base_url, measurement_id)}
 
 
 def state_change_event(
@@ -98,41 +106,96 @@ def state_change_event(
     occurred_at: datetime | None = None,
     reason: str | None = None,
 ) -> EventInput | None:
-    """The alert for a node's state change, or None when the change is not one operators need.
+    """The alert of a plain state transition, or None when it is not one operators need.
 
     to suspected/damage: ``damage_raised`` (warning/critical); suspected/damage -> ok:
     ``damage_cleared``; -> no_valid_baseline: ``monitoring_blind`` (an open damage alert stays
     open: a blind node has not shown the pipe is sound); no_valid_baseline -> ok:
     ``monitoring_restored``. Commissioning/calibrating transitions give None. ``reason``: why the
     imaging abstained (the detection's ``abstain_reason``), carried by ``monitoring_blind``.
+    The gateway decides with the node's open alarms instead (``alerts.alarms.alarm_events``),
+    which also ends them by re-baseline and after blind spells; this is the transition alone.
     """
     before, after = NodeState(from_state), NodeState(to_state)
     if before == after:
         return None
     if after in ALARM_STATES:
-        kind, severity = EventKind.DAMAGE_RAISED, ALARM_STATES[after]
-        routing = severity
+        kind = EventKind.DAMAGE_RAISED
     elif after == NodeState.OK and before in ALARM_STATES:
-        kind, severity, routing = EventKind.DAMAGE_CLEARED, Severity.INFO, ALARM_STATES[before]
+        kind = EventKind.DAMAGE_CLEARED
     elif after == NodeState.NO_VALID_BASELINE:
-        kind, severity = EventKind.MONITORING_BLIND, Severity.WARNING
-        routing = severity
+        kind = EventKind.MONITORING_BLIND
     elif after == NodeState.OK and before == NodeState.NO_VALID_BASELINE:
-        kind, severity, routing = EventKind.MONITORING_RESTORED, Severity.INFO, Severity.WARNING
+        kind = EventKind.MONITORING_RESTORED
     else:
         return None
+    return alarm_state_event(
+        settings, kind, node_id=node_id, from_state=before, to_state=after, measurement_id=measurement_id,
+        peak_di=peak_di, threshold=threshold, axial_mm=axial_mm, angle_deg=angle_deg, occurred_at=occurred_at,
+        reason=reason,
+    )
+
+
+def alarm_state_event(
+    settings: AlertingSettings,
+    kind: EventKind,
+    *,
+    node_id: str,
+    from_state: NodeState | str,
+    to_state: NodeState | str,
+    measurement_id: int | None,
+    peak_di: float | None,
+    threshold: float | None,
+    axial_mm: float | None = None,
+    angle_deg: float | None = None,
+    occurred_at: datetime | None = None,
+    reason: str | None = None,
+    alarm_id: uuid.UUID | None = None,
+    ended_by: EndedBy | None = None,
+    routing: Severity | None = None,
+    sinks: tuple[str, ...] | None = None,
+) -> EventInput:
+    """One of the node's damage/blind alarm events (``STATE_KINDS``), raise or end.
+
+    A raise is one id per (kind, node, measurement, transition); an end, given the ``alarm_id``
+    (the id of the raise that opened it), one id per alarm: an alarm ends once. ``alarm_id`` on a
+    raise: the alarm it escalates. ``ended_by``: why it ended (default: recovery); ``routing``: an
+    end's routing severity (the alarm's; default from ``from_state``); ``sinks``: who must hear it
+    (default: the routing's).
+    """
+    before, after = NodeState(from_state), NodeState(to_state)
+    if kind == EventKind.DAMAGE_RAISED:
+        severity = ALARM_STATES[after]
+        routing = severity
+    elif kind == EventKind.MONITORING_BLIND:
+        severity = routing = Severity.WARNING
+    elif kind == EventKind.DAMAGE_CLEARED:
+        severity = Severity.INFO
+        routing = routing or ALARM_STATES.get(before, Severity.WARNING)
+    elif kind == EventKind.MONITORING_RESTORED:
+        severity, routing = Severity.INFO, routing or Severity.WARNING
+    else:
+        raise ValueError(f"{kind} is not a state alarm kind")
     occurred_at = occurred_at or utc_now()
-    fact = measurement_id if measurement_id is not None else occurred_at.isoformat()
-    eid = event_id(kind, node_id, fact, f"{before}->{after}")
+    ends = kind in (EventKind.DAMAGE_CLEARED, EventKind.MONITORING_RESTORED)
+    if ends and alarm_id is not None:
+        eid = event_id(kind, alarm_id)
+    else:
+        fact = measurement_id if measurement_id is not None else occurred_at.isoformat()
+        eid = event_id(kind, node_id, fact, f"{before}->{after}")
+    if ends:
+        ended_by = ended_by or EndedBy(cause="recovery")
     detection = _detection(peak_di, threshold)
     location = _location(axial_mm, angle_deg)
     payload = StateChangePayload(
         **_common(settings, eid, kind, node_id, severity, routing, occurred_at, measurement_id),
-        summary=_state_summary(kind, node_id, before, after, detection, location, reason),
+        summary=_state_summary(kind, node_id, before, after, detection, location, reason, ended_by),
         state=after, previous_state=before, online=True, detection=detection, location=location,
         reason=reason if kind == EventKind.MONITORING_BLIND and reason else None,
+        alarm="damage" if kind in DAMAGE_KINDS else "blind", alarm_id=alarm_id or eid,
+        ended_by=ended_by if ends else None,
     )
-    return _event(settings, payload, routing)
+    return _event(settings, payload, routing, sinks)
 
 
 def node_offline_event(
@@ -142,19 +205,23 @@ def node_offline_event(
     state: NodeState | str,
     last_seen_at: datetime,
     now: datetime | None = None,
+    after: uuid.UUID | None = None,
 ) -> EventInput:
     """``node_offline`` (warning): the node has not answered since ``last_seen_at``.
 
-    One outage (one ``last_seen_at``) gives one event id, however often it is checked.
+    One outage (one ``last_seen_at``) gives one event id, however often it is checked. ``after``:
+    the end of an earlier offline alarm with the same ``last_seen_at`` (ended by a decommissioning:
+    the node was recommissioned and is still silent), which makes this a new alarm.
     """
     now = now or utc_now()
-    eid = event_id(EventKind.NODE_OFFLINE, node_id, last_seen_at.isoformat())
+    fact = (node_id, last_seen_at.isoformat()) if after is None else (node_id, last_seen_at.isoformat(), after)
+    eid = event_id(EventKind.NODE_OFFLINE, *fact)
     offline_s = max(0.0, (now - last_seen_at).total_seconds())
     payload = NodeOfflinePayload(
         **_common(settings, eid, EventKind.NODE_OFFLINE, node_id, Severity.WARNING, Severity.WARNING, now),
         summary=f"node {node_id} offline: not seen for {_duration(offline_s)} (since {last_seen_at:%Y-%m-%d %H:%M:%S} UTC)",
         state=NodeState(state), previous_state=NodeState(state), online=False,
-        last_seen_at=last_seen_at, offline_for_s=round(offline_s, 1),
+        last_seen_at=last_seen_at, offline_for_s=round(offline_s, 1), alarm="offline", alarm_id=eid,
     )
     return _event(settings, payload, Severity.WARNING)
 
@@ -167,17 +234,24 @@ def node_online_event(
     offline_event_id: uuid.UUID,
     offline_since: datetime,
     seen_at: datetime,
+    ended_by: EndedBy | None = None,
+    sinks: tuple[str, ...] | None = None,
 ) -> EventInput:
-    """``node_online`` (info, routed like the offline alert it ends): the node answers again."""
+    """``node_online`` (info, routed like the offline alert it ends): the node answers again — or,
+    ``ended_by`` a decommissioning, its offline alarm ends with it out of service (still not online)."""
     eid = event_id(EventKind.NODE_ONLINE, offline_event_id)
     down_s = max(0.0, (seen_at - offline_since).total_seconds())
+    ended_by = ended_by or EndedBy(cause="recovery")
+    recovered = ended_by.cause == "recovery"
+    summary = (f"node {node_id} back online after {_duration(down_s)}, state {state}" if recovered
+               else f"node {node_id} offline alarm ended after {_duration(down_s)}{end_text(ended_by)}")
     payload = NodeOnlinePayload(
         **_common(settings, eid, EventKind.NODE_ONLINE, node_id, Severity.INFO, Severity.WARNING, seen_at),
-        summary=f"node {node_id} back online after {_duration(down_s)}, state {state}",
-        state=NodeState(state), previous_state=NodeState(state), online=True,
+        summary=summary, state=NodeState(state), previous_state=NodeState(state), online=recovered,
         offline_event_id=offline_event_id, offline_since=offline_since, offline_for_s=round(down_s, 1),
+        alarm="offline", alarm_id=offline_event_id, ended_by=ended_by,
     )
-    return _event(settings, payload, Severity.WARNING)
+    return _event(settings, payload, Severity.WARNING, sinks)
 
 
 def baseline_changed_event(
@@ -298,6 +372,7 @@ def sensor_fault_event(
         f"{consecutive} consecutive measurements; left out of the DI map, coverage reduced",
         state=NodeState(state), previous_state=NodeState(state), online=True,
         receiver=receiver, faulty_receivers=sorted(faulty_receivers), consecutive_measurements=consecutive,
+        alarm="sensor_fault", alarm_id=eid,
     )
     return _event(settings, payload, Severity.WARNING)
 
@@ -309,14 +384,17 @@ def sensor_fault_cleared_event(
     raised_event_id: uuid.UUID,
     raised_receiver: dict[str, Any],
     raised_measurement_id: int | None,
-    measurement_id: int,
+    measurement_id: int | None,
     state: NodeState | str,
     faulty_receivers: list[int],
     consecutive: int,
     occurred_at: datetime | None = None,
+    ended_by: EndedBy | None = None,
+    sinks: tuple[str, ...] | None = None,
 ) -> EventInput:
     """``sensor_fault_cleared`` (info, routed like the ``sensor_fault`` it ends): the receiver
-    was healthy in ``consecutive`` measurements in a row and is back in the DI map.
+    was healthy in ``consecutive`` measurements in a row and is back in the DI map — or, ``ended_by``
+    a decommissioning (no measurement), its alarm ends with the node out of service.
 
     ``raised_receiver`` is the ``receiver`` of the ``sensor_fault`` event it clears (the same
     rx_index and kind, so Alertmanager resolves the same label set). One clearing per raise:
@@ -326,16 +404,21 @@ def sensor_fault_cleared_event(
     receiver = _receiver(raised_receiver)
     eid = event_id(EventKind.SENSOR_FAULT_CLEARED, raised_event_id)
     since = "" if raised_measurement_id is None else f" since measurement {raised_measurement_id}"
+    ended_by = ended_by or EndedBy(cause="recovery")
+    if ended_by.cause == "recovery":
+        summary = (f"node {node_id} {_receiver_text(receiver)} healthy again in {consecutive} consecutive "
+                   f"measurements (was {receiver.kind}{since}); back in the DI map")
+    else:
+        summary = f"node {node_id} {_receiver_text(receiver)} alarm ended (was {receiver.kind}{since}){end_text(ended_by)}"
     payload = SensorFaultClearedPayload(
         **_common(settings, eid, EventKind.SENSOR_FAULT_CLEARED, node_id, Severity.INFO, Severity.WARNING,
                   occurred_at, measurement_id),
-        summary=f"node {node_id} {_receiver_text(receiver)} healthy again in {consecutive} consecutive "
-        f"measurements (was {receiver.kind}{since}); back in the DI map",
-        state=NodeState(state), previous_state=NodeState(state), online=True,
+        summary=summary, state=NodeState(state), previous_state=NodeState(state), online=True,
         receiver=receiver, faulty_receivers=sorted(faulty_receivers), consecutive_measurements=consecutive,
         raised_event_id=raised_event_id, raised_measurement_id=raised_measurement_id,
+        alarm="sensor_fault", alarm_id=raised_event_id, ended_by=ended_by,
     )
-    return _event(settings, payload, Severity.WARNING)
+    return _event(settings, payload, Severity.WARNING, sinks)
 
 
 def _common(
@@ -349,19 +432,32 @@ def _common(
     measurement_id: int | None = None,
 ) -> dict[str, Any]:
     """The fields every payload has that the builders do not each decide."""
+    base = settings.api_base_url
     links = Links(
-        node=None if node_id is None else node_url(settings, node_id),
-        measurement=None if measurement_id is None else measurement_url(settings, measurement_id),
-        di_map_png=None if measurement_id is None else di_map_png_url(settings, measurement_id),
+        node=None if node_id is None else node_url(base, node_id),
+        measurement=None if measurement_id is None else measurement_url(base, measurement_id),
+        di_map_png=None if measurement_id is None else di_map_png_url(base, measurement_id),
     )
     return dict(event_id=eid, kind=kind, node_id=node_id, severity=severity, routing_severity=routing,
                 occurred_at=occurred_at, measurement_id=measurement_id, links=links)
 
 
-def _event(settings: AlertingSettings, payload: EventPayload, routing: Severity) -> EventInput:
-    """The outbox event of ``payload``, for the sinks that want ``routing``."""
+def _event(
+    settings: AlertingSettings, payload: EventPayload, routing: Severity, sinks: tuple[str, ...] | None = None
+) -> EventInput:
+    """The outbox event of ``payload``, for the sinks that want ``routing`` (or ``sinks``)."""
     return EventInput(kind=EventKind(payload.kind), severity=payload.severity, payload=payload_json(payload),
-                      sinks=settings.sink_names_for(routing), id=payload.event_id)
+                      sinks=settings.sink_names_for(routing) if sinks is None else sinks, id=payload.event_id)
+
+
+def detection_of(peak_di: float | None, threshold: float | None) -> Detection | None:
+    """The payload's ``detection``: the DI peak against the threshold (None without a peak)."""
+    return _detection(peak_di, threshold)
+
+
+def location_of(axial_mm: float | None, angle_deg: float | None) -> Location | None:
+    """The payload's ``location`` (None when the estimate is unknown)."""
+    return _location(axial_mm, angle_deg)
 
 
 def _detection(peak_di: float | None, threshold: float | None) -> Detection | None:
@@ -438,17 +534,33 @@ def _state_summary(
     detection: Detection | None,
     location: Location | None,
     reason: str | None = None,
+    ended_by: EndedBy | None = None,
 ) -> str:
     di = detection_text(None if detection is None else detection.model_dump())
     if kind == EventKind.DAMAGE_RAISED:
         where = location_text(None if location is None else location.model_dump())
         return f"{to_state.upper()} on node {node_id}: {di} at {where}"
-    if kind == EventKind.DAMAGE_CLEARED:
-        return f"cleared on node {node_id}: {from_state} → ok, {di}"
     if kind == EventKind.MONITORING_BLIND:
         why = reason or "no valid baseline for current conditions"
         return f"node {node_id} cannot assess the pipe: {why} (was {from_state})"
-    return f"node {node_id} monitoring again: no_valid_baseline → ok, {di}"
+    cause = end_text(ended_by)
+    if ended_by is not None and ended_by.cause == "decommissioning":
+        alarm = "damage" if kind == EventKind.DAMAGE_CLEARED else "blind-monitoring"
+        return f"{alarm} alarm on node {node_id} ended{cause}"
+    reading = f", {di}" if detection is not None else ""
+    if kind == EventKind.DAMAGE_CLEARED:
+        return f"cleared on node {node_id}: {from_state} → {to_state}{reading}{cause}"
+    return f"node {node_id} monitoring again: {from_state} → {to_state}{reading}{cause}"
+
+
+def end_text(ended_by: EndedBy | None) -> str:
+    """Why an alarm ended, for summaries: nothing for a recovery."""
+    if ended_by is None or ended_by.cause == "recovery":
+        return ""
+    what = {"rebaseline": "new baseline", "decommissioning": "node decommissioned"}[ended_by.cause]
+    who = f" by {ended_by.by}" if ended_by.by else ""
+    why = f": {ended_by.reason}" if ended_by.reason else ""
+    return f" ({what}{who}{why})"
 
 
 def _duration(seconds: float) -> str:

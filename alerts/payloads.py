@@ -27,7 +27,11 @@ from pydantic.json_schema import models_json_schema
 
 from db.models import NodeState, Severity
 
-PAYLOAD_SCHEMA: Final = 1
+PAYLOAD_SCHEMA: Final = 2
+# 2: every alarm event says which alarm (``alarm``, ``alarm_id``) and every end why it ended
+# (``ended_by``: recovery, re-baseline, decommissioning); an end no longer implies the node is
+# ok (damage_cleared after a re-baseline says calibrating) or online (node_online ended by a
+# decommissioning has online false).
 
 # An instant as the payload has always carried it: ISO 8601 with its UTC offset (``+00:00``).
 Instant = Annotated[
@@ -118,10 +122,27 @@ class Decommissioning(PayloadPart):
     reason: str
 
 
+class EndedBy(PayloadPart):
+    """Why an alarm ended (docs/alerting.md, "Alarms and how they end")."""
+
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"by", "reason", "baseline_id"})
+
+    cause: Literal["recovery", "rebaseline", "decommissioning"] = Field(
+        description="recovery: the node says the problem is gone; rebaseline: an operator set a new active "
+        "baseline after the alarm was raised; decommissioning: an admin took the node out of service")
+    by: str | None = Field(None, description="who set the baseline / decommissioned the node")
+    reason: str | None = Field(None, description="their reason")
+    baseline_id: int | None = Field(None, description="rebaseline: the baseline record that ended it")
+
+
+AlarmId = Annotated[uuid.UUID, Field(description="the id of the event that first raised the alarm (an escalation "
+                                                 "and the end keep it): one per alarm")]
+
+
 class EventPayload(PayloadPart):
     """What every alert carries, whatever its kind."""
 
-    schema_version: Literal[1] = Field(PAYLOAD_SCHEMA, alias="schema", description="the payload's version")
+    schema_version: Literal[2] = Field(PAYLOAD_SCHEMA, alias="schema", description="the payload's version")
     event_id: uuid.UUID = Field(description="stable id of the fact (uuid5): receivers de-duplicate on it")
     kind: str
     node_id: str | None
@@ -140,13 +161,16 @@ class EventPayload(PayloadPart):
 
 
 class StateChangePayload(EventPayload):
-    """The node's state changed: damage raised or cleared, monitoring blind or restored."""
+    """The node's damage or blind alarm: raised (or escalated) or ended."""
 
-    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"reason"})
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"reason", "ended_by"})
 
     kind: Literal["damage_raised", "damage_cleared", "monitoring_blind", "monitoring_restored"]
     node_id: str
     reason: str | None = Field(None, description="monitoring_blind: why the imaging abstained")
+    alarm: Literal["damage", "blind"]
+    alarm_id: AlarmId
+    ended_by: EndedBy | None = Field(None, description="damage_cleared, monitoring_restored: why the alarm ended")
 
 
 class NodeOfflinePayload(EventPayload):
@@ -154,6 +178,8 @@ class NodeOfflinePayload(EventPayload):
     node_id: str
     last_seen_at: Instant
     offline_for_s: float
+    alarm: Literal["offline"]
+    alarm_id: AlarmId
 
 
 class NodeOnlinePayload(EventPayload):
@@ -162,6 +188,9 @@ class NodeOnlinePayload(EventPayload):
     offline_event_id: uuid.UUID = Field(description="the node_offline event this one ends")
     offline_since: Instant
     offline_for_s: float
+    alarm: Literal["offline"]
+    alarm_id: AlarmId
+    ended_by: EndedBy
 
 
 class BaselineChangedPayload(EventPayload):
@@ -206,12 +235,17 @@ class ReceiverPayload(EventPayload):
 
 class SensorFaultPayload(ReceiverPayload):
     kind: Literal["sensor_fault"]
+    alarm: Literal["sensor_fault"]
+    alarm_id: AlarmId
 
 
 class SensorFaultClearedPayload(ReceiverPayload):
     kind: Literal["sensor_fault_cleared"]
     raised_event_id: uuid.UUID = Field(description="the sensor_fault event this one ends")
     raised_measurement_id: int | None
+    alarm: Literal["sensor_fault"]
+    alarm_id: AlarmId
+    ended_by: EndedBy
 
 
 KIND_PAYLOADS: tuple[type[EventPayload], ...] = (

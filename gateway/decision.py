@@ -13,8 +13,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 
+from alerts.alarms import AlarmChange, BaselineSet, NodeAlarms, alarm_change, alarm_events
 from alerts.config import AlertingSettings
-from alerts.events import state_change_event
 from alerts.sensor_faults import SensorFaultChange, SensorFaultHistory, sensor_fault_change, sensor_fault_events
 from db.models import MeasurementKind, NodeState
 from db.records import DetectionInput, EventInput, StateChangeInput
@@ -35,6 +35,7 @@ class NodeHistory:
     active_baseline_id: int | None  # the measurement the node's maps are computed against
     baseline_set_at: datetime | None  # when that baseline became active
     n_baselines: int  # measurements stored as baselines (commissioning and library)
+    baseline: BaselineSet | None = None  # the active baseline's record (who set it and why): ends by re-baseline name it
 
 
 def is_commissioning(settings: NodeSettings, history: NodeHistory) -> bool:
@@ -51,6 +52,7 @@ class MonitoringInputs:
     library_ids: Sequence[int]  # measurement ids of the baseline library, in the order the imaging saw it
     library: Sequence[Measurement]  # ... and the baselines themselves
     sensor_faults: SensorFaultHistory
+    alarms: NodeAlarms = field(default_factory=NodeAlarms)  # the node's open alarms (alerts.alarms.open_alarms)
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,8 @@ class Verdict:
     activate_baseline: str | None = None  # the reason, when the record becomes the node's active baseline
     joins_library: bool = False  # a monitor record kept as another baseline (the library learns a temperature)
     sensor_faults: SensorFaultChange = field(default_factory=SensorFaultChange)
+    alarms: AlarmChange = field(default_factory=AlarmChange)  # the damage/blind alarms raised and ended
+    open_alarms: NodeAlarms = field(default_factory=NodeAlarms)  # those open before (an escalation keeps its alarm's id)
 
     def events(
         self, alerting: AlertingSettings, *, node_id: str, measurement_id: int, now: datetime | None = None
@@ -76,23 +80,13 @@ class Verdict:
         detection = self.detection
         if detection is None:
             return []
-        events = []
-        if self.state_change is not None:
-            event = state_change_event(
-                alerting,
-                node_id=node_id,
-                from_state=self.state_change.from_state,
-                to_state=self.state_change.to_state,
-                measurement_id=measurement_id,
-                peak_di=detection.peak_di,
-                threshold=detection.threshold,
-                axial_mm=detection.axial_mm,
-                angle_deg=detection.angle_deg,
-                occurred_at=now,
-                reason=detection.abstain_reason,
-            )
-            if event is not None:
-                events.append(event)
+        before = self.state if self.state_change is None else self.state_change.from_state
+        events = alarm_events(
+            alerting, self.alarms, self.open_alarms, node_id=node_id, from_state=before.value,
+            to_state=self.state.value, measurement_id=measurement_id, peak_di=detection.peak_di,
+            threshold=detection.threshold, axial_mm=detection.axial_mm, angle_deg=detection.angle_deg,
+            reason=detection.abstain_reason, occurred_at=now,
+        )
         events += sensor_fault_events(
             alerting, self.sensor_faults, node_id=node_id, measurement_id=measurement_id, state=self.state.value, now=now
         )
@@ -132,6 +126,10 @@ def decide_monitoring(
     An abstaining imaging makes the node ``no_valid_baseline``; without a threshold yet it is
     ``calibrating``; otherwise the flagger's hysteresis decides (gateway/flagging.py). A
     clearly healthy record at a new temperature joins the baseline library (``joins_library``).
+    The node's damage and blind alarms follow the new state (``alerts.alarms.alarm_change``): an
+    open alarm the state no longer wants ends — by re-baseline when the active baseline was set
+    after it was raised (so damage -> calibrating after a repair ends the damage alarm), else by
+    recovery — and a wanted one that is not open is raised.
     """
     m = settings.threshold.hysteresis_count
     threshold = inputs.threshold
@@ -163,4 +161,6 @@ def decide_monitoring(
         detection=detection,
         joins_library=joins,
         sensor_faults=sensor_fault_change(inputs.sensor_faults, detection.sensor_faults),
+        alarms=alarm_change(inputs.alarms, state=state.value, baseline=history.baseline),
+        open_alarms=inputs.alarms,
     )

@@ -17,6 +17,7 @@ from datetime import datetime
 
 from sqlalchemy.orm import Session
 
+from alerts.alarms import BaselineSet, decommissioning_events, open_alarms
 from alerts.config import AlertingSettings
 from alerts.events import SENSOR_FAULT_KINDS, node_decommissioned_event, node_recommissioned_event
 from alerts.sensor_faults import sensor_fault_history
@@ -218,8 +219,14 @@ class NodeWorker:
             since = node.decommissioned_at
             decommissioned = since is not None  # as of this transaction (an admin may just have undone it)
             event: EventInput | None = None
+            ends: list[EventInput] = []
             if since is not None:
                 node.online = False  # a poll in flight when it was decommissioned marked it online
+                # Every alarm still open about the node ends with it (told before the decommissioning).
+                ends = decommissioning_events(
+                    self.alerting, open_alarms(session, node.node_id), node_id=node.node_id, state=node.state.value,
+                    decommissioned_at=since, by=node.decommissioned_by or "?", reason=node.decommission_reason or "",
+                )
                 event = node_decommissioned_event(
                     self.alerting, node_id=node.node_id, state=node.state.value,
                     decommissioned_at=since, by=node.decommissioned_by or "?",
@@ -230,8 +237,9 @@ class NodeWorker:
                     self.alerting, node_id=node.node_id, state=node.state.value,
                     decommissioned_at=self._decommissioned_at,
                 )
-            if event is not None:  # idempotent: a restart finds the same decommissioning, the same id
-                add_event_once(session, event, node_id=node.node_id)
+            for added in [*ends, *([event] if event is not None else [])]:
+                # idempotent: a restart finds the same decommissioning (and alarms), the same ids
+                add_event_once(session, added, node_id=node.node_id)
         self._out_of_service, self._decommissioned_at = decommissioned, since
         if decommissioned:
             log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
@@ -327,6 +335,7 @@ class NodeWorker:
             library_ids=library_ids,
             library=self.library.load(session, library_ids, conn.view),
             sensor_faults=sensor_fault_history(session, node_id, self.alerting.sensor_fault_count),
+            alarms=open_alarms(session, node_id),
         )
 
     def _threshold(self, session: Session, history: NodeHistory) -> float | None:
@@ -387,6 +396,8 @@ def node_history(session: Session, node_id: str) -> NodeHistory:
         active_baseline_id=None if baseline is None else baseline.measurement_id,
         baseline_set_at=None if baseline is None else baseline.created_at,
         n_baselines=baseline_count(session, node_id),
+        baseline=None if baseline is None else BaselineSet(
+            baseline_id=baseline.id, set_at=baseline.created_at, by=baseline.created_by, reason=baseline.reason),
     )
 
 

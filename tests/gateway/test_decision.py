@@ -7,10 +7,11 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
+from alerts.alarms import Alarm, BaselineSet, NodeAlarms, OpenAlarm
 from alerts.config import AlertingSettings
 from alerts.events import EventKind
 from alerts.sensor_faults import OpenFault, SensorFaultHistory
-from db.models import MeasurementKind, NodeState
+from db.models import MeasurementKind, NodeState, Severity
 from gateway.assessment import assess_settings
 from gateway.config import NodeSettings, ThresholdSettings
 from gateway.decision import (
@@ -57,17 +58,41 @@ def assessments(records) -> dict[str, Assessment]:
 
 
 def history(state=NodeState.OK, *, active=BASELINE_ID, n_baselines=1, age_days=1.0) -> NodeHistory:
-    return NodeHistory(state, active, NOW - timedelta(days=age_days) if active else None, n_baselines)
+    set_at = NOW - timedelta(days=age_days) if active else None
+    record = BaselineSet(40, set_at, "alice", "clamp repaired") if set_at else None
+    return NodeHistory(state, active, set_at, n_baselines, baseline=record)
 
 
-def inputs(records, *, flag=None, threshold=THRESHOLD, library_temps=(20.0,), sensor=None) -> MonitoringInputs:
+def open_alarm(alarm=Alarm.DAMAGE, state="damage", *, days_ago=2.0, sinks=("hook",)) -> OpenAlarm:
+    """An alarm raised ``days_ago`` (before the default baseline, set a day ago)."""
+    routing = {"suspected": Severity.WARNING, "damage": Severity.CRITICAL}.get(state, Severity.WARNING)
+    eid = uuid.uuid5(uuid.NAMESPACE_URL, f"{alarm}/{state}/{days_ago}")
+    raised = NOW - timedelta(days=days_ago)
+    return OpenAlarm(alarm, eid, eid, raised, routing, {"state": state, "occurred_at": raised.isoformat()},
+                     frozenset(sinks))
+
+
+def alarms_of(state: NodeState) -> NodeAlarms:
+    """The alarms open for a node whose alarms followed its state so far."""
+    if state in (NodeState.SUSPECTED, NodeState.DAMAGE):
+        return NodeAlarms(damage=open_alarm(state=state.value))
+    if state == NodeState.NO_VALID_BASELINE:
+        return NodeAlarms(blind=open_alarm(Alarm.BLIND, "no_valid_baseline"))
+    return NodeAlarms()
+
+
+def inputs(records, *, flag=None, threshold=THRESHOLD, library_temps=(20.0,), sensor=None,
+           alarms=None) -> MonitoringInputs:
     library = [replace(records["baseline"], temperature_c=t) for t in library_temps]
     return MonitoringInputs(flag or FlagState(), threshold, [BASELINE_ID + k for k in range(len(library))], library,
-                            sensor or SensorFaultHistory(ALERTING.sensor_fault_count, (), {}))
+                            sensor or SensorFaultHistory(ALERTING.sensor_fault_count, (), {}),
+                            alarms=alarms if alarms is not None else NodeAlarms())
 
 
-def monitor(records, assessment, *, node=NODE, state=NodeState.OK, temperature_c=20.5, age_days=1.0, **kw):
-    return decide_monitoring(node, history(state, age_days=age_days), inputs(records, **kw), assessment,
+def monitor(records, assessment, *, node=NODE, state=NodeState.OK, temperature_c=20.5, age_days=1.0, alarms=None,
+            **kw):
+    alarms = alarms_of(state) if alarms is None else alarms
+    return decide_monitoring(node, history(state, age_days=age_days), inputs(records, alarms=alarms, **kw), assessment,
                              temperature_c=temperature_c, now=NOW)
 
 
@@ -173,3 +198,94 @@ def test_the_same_verdict_gives_the_same_event_ids_for_the_same_measurement(reco
     again = verdict.events(ALERTING, node_id="n", measurement_id=100, now=NOW + timedelta(seconds=5))
     other = verdict.events(ALERTING, node_id="n", measurement_id=101, now=NOW)
     assert [e.id for e in first] == [e.id for e in again] != [e.id for e in other]
+
+
+# ------------------------------------------------------------------ alarms that end
+def events(verdict, measurement_id=100):
+    return {e.kind: e for e in verdict.events(ALERTING_TWO, node_id="n", measurement_id=measurement_id, now=NOW)}
+
+
+ALERTING_TWO = AlertingSettings.model_validate({"sinks": [
+    {"type": "webhook", "name": "hook", "url": "http://127.0.0.1:9/", "secret": "whsec_" + "QUJD" * 8},
+    {"type": "slack", "name": "chat", "url": "http://127.0.0.1:9/", "min_severity": "critical"},
+]})
+
+
+def test_a_damaged_node_re_baselined_calibrates_and_its_damage_alarm_ends_by_the_new_baseline(records, assessments):
+    # The alarm was raised two days ago; an operator set a new baseline a day ago ("clamp repaired").
+    alarm = open_alarm(state="damage", sinks=("hook", "chat"))
+    verdict = monitor(records, assessments["sound"], node=NodeSettings(id="n", url="loop://"), state=NodeState.DAMAGE,
+                      threshold=None, alarms=NodeAlarms(damage=alarm))
+    assert verdict.state == NodeState.CALIBRATING
+    (cleared,) = events(verdict).values()
+    assert cleared.kind == EventKind.DAMAGE_CLEARED
+    p = cleared.payload
+    assert p["ended_by"] == {"cause": "rebaseline", "by": "alice", "reason": "clamp repaired", "baseline_id": 40}
+    assert p["alarm_id"] == str(alarm.alarm_id) and p["state"] == "calibrating" and p["previous_state"] == "damage"
+    assert p["routing_severity"] == "critical" and set(cleared.sinks) == {"hook", "chat"}
+    assert "new baseline by alice: clamp repaired" in p["summary"]
+
+
+def test_an_alarm_ends_once_whichever_measurement_ends_it(records, assessments):
+    alarm = NodeAlarms(damage=open_alarm())
+    first = monitor(records, assessments["sound"], state=NodeState.DAMAGE, threshold=None, alarms=alarm)
+    later = monitor(records, assessments["sound"], state=NodeState.DAMAGE, threshold=None, alarms=alarm)
+    assert [e.id for e in events(first, 100).values()] == [e.id for e in events(later, 200).values()]
+
+
+def test_a_blind_node_re_baselined_at_the_new_temperature_ends_its_blind_alarm(records, assessments):
+    verdict = monitor(records, assessments["sound"], node=NodeSettings(id="n", url="loop://"),
+                      state=NodeState.NO_VALID_BASELINE, threshold=None)
+    assert verdict.state == NodeState.CALIBRATING
+    (restored,) = events(verdict).values()
+    assert restored.kind == EventKind.MONITORING_RESTORED and restored.payload["ended_by"]["cause"] == "rebaseline"
+    assert restored.payload["alarm"] == "blind"
+
+
+def test_a_damage_alarm_kept_open_through_a_blind_spell_ends_with_it_when_the_pipe_reads_sound(records, assessments):
+    # damage, then blind (the damage alarm stays open: blind is not sound), then sound readings.
+    both = NodeAlarms(damage=open_alarm(days_ago=0.5), blind=open_alarm(Alarm.BLIND, "no_valid_baseline", days_ago=0.2))
+    verdict = monitor(records, assessments["sound"], state=NodeState.NO_VALID_BASELINE, alarms=both)
+    assert verdict.state == NodeState.OK
+    got = events(verdict)
+    assert set(got) == {EventKind.DAMAGE_CLEARED, EventKind.MONITORING_RESTORED}
+    assert all(e.payload["ended_by"] == {"cause": "recovery"} for e in got.values())  # raised after the baseline
+    assert "chat" in got[EventKind.DAMAGE_CLEARED].sinks  # routed like the critical alarm it ends
+
+
+def test_going_blind_keeps_the_damage_alarm_and_raises_the_blind_one(records, assessments):
+    verdict = monitor(records, assessments["blind"], state=NodeState.DAMAGE, temperature_c=45.0)
+    assert list(events(verdict)) == [EventKind.MONITORING_BLIND]
+
+
+def test_a_blind_node_reading_damage_ends_the_blind_alarm_and_raises_damage(records, assessments):
+    verdict = monitor(records, assessments["notched"], state=NodeState.NO_VALID_BASELINE)
+    assert verdict.state == NodeState.SUSPECTED
+    assert list(events(verdict)) == [EventKind.MONITORING_RESTORED, EventKind.DAMAGE_RAISED]
+
+
+def test_a_node_in_damage_without_an_open_alarm_raises_it_again(records, assessments):
+    # Decommissioned in damage (which ended its alarm), recommissioned, still above the threshold.
+    verdict = monitor(records, assessments["notched"], state=NodeState.DAMAGE, flag=FlagState(NodeState.DAMAGE, above=3),
+                      alarms=NodeAlarms())
+    assert verdict.state == NodeState.DAMAGE and verdict.state_change is None
+    (raised,) = events(verdict).values()
+    assert raised.kind == EventKind.DAMAGE_RAISED and raised.severity == Severity.CRITICAL
+
+
+def test_an_escalation_keeps_the_alarm_id_of_the_first_raise(records, assessments):
+    suspected = open_alarm(state="suspected")
+    verdict = monitor(records, assessments["notched"], state=NodeState.SUSPECTED,
+                      flag=FlagState(NodeState.SUSPECTED, above=1), alarms=NodeAlarms(damage=suspected))
+    assert verdict.state == NodeState.DAMAGE
+    (raised,) = events(verdict).values()
+    assert raised.payload["alarm_id"] == str(suspected.alarm_id) and raised.id != suspected.alarm_id
+
+
+def test_with_an_absolute_threshold_a_new_baseline_ends_the_alarm_once_readings_are_sound(records, assessments):
+    damage = FlagState(NodeState.DAMAGE, above=2)
+    once = monitor(records, assessments["sound"], state=NodeState.DAMAGE, flag=damage)
+    assert events(once) == {}  # hysteresis: M sound readings
+    twice = monitor(records, assessments["sound"], state=NodeState.DAMAGE, flag=once.flag)
+    (cleared,) = events(twice).values()
+    assert cleared.payload["ended_by"]["cause"] == "rebaseline"  # the alarm predates the baseline
