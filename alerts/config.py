@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import re
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
@@ -14,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, m
 from db.models import Severity
 
 SINK_NAME_PATTERN = r"^[A-Za-z0-9_.-]+$"
+LABEL_NAME = re.compile(r"[a-zA-Z_][a-zA-Z0-9_]*")
+RESERVED_LABELS = frozenset({"alertname", "node", "severity", "state", "rx_index", "kind"})
 WEBHOOK_SECRET_PREFIX = "whsec_"
 _SEVERITY_RANK = {Severity.INFO: 0, Severity.WARNING: 1, Severity.CRITICAL: 2}
 
@@ -63,6 +66,21 @@ class AlertmanagerSinkSettings(SinkSettings):
     type: Literal["alertmanager"] = "alertmanager"
     url: str = Field(pattern=r"^https?://", description="Alertmanager base URL, e.g. http://127.0.0.1:9093")
     resend_interval_s: float = Field(60.0, gt=0, description="active alerts are re-sent this often")
+    labels: dict[str, str] = Field(
+        default_factory=dict,
+        description="added to every alert, e.g. {site = \"site-1\"} for a central Alertmanager's routes and "
+        "inhibitions; cannot replace the alert's own labels",
+    )
+
+    @field_validator("labels")
+    @classmethod
+    def _label_names(cls, value: dict[str, str]) -> dict[str, str]:
+        for name in value:
+            if not LABEL_NAME.fullmatch(name):
+                raise ValueError(f"{name!r} is not a Prometheus label name ([a-zA-Z_][a-zA-Z0-9_]*)")
+            if name in RESERVED_LABELS:
+                raise ValueError(f"{name!r} is set by PipeSentry itself ({', '.join(sorted(RESERVED_LABELS))})")
+        return value
 
 
 class SlackSinkSettings(SinkSettings):

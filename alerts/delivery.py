@@ -88,12 +88,12 @@ class Beats(Protocol):
     def beat(self, name: str) -> None: ...
 
 
-def make_transport(sink: AnySinkSettings, database: Database) -> SinkTransport:
-    """The transport for one configured sink."""
+def make_transport(sink: AnySinkSettings, alerting: AlertingSettings, database: Database) -> SinkTransport:
+    """The transport for one configured sink (Alertmanager and MQTT also read the database: what is active)."""
     if isinstance(sink, WebhookSinkSettings):
         return WebhookTransport(sink)
     if isinstance(sink, AlertmanagerSinkSettings):
-        return AlertmanagerTransport(sink, database)
+        return AlertmanagerTransport(sink, database, api_base_url=alerting.api_base_url)
     if isinstance(sink, SlackSinkSettings):
         return SlackTransport(sink)
     if isinstance(sink, MqttSinkSettings):
@@ -326,11 +326,11 @@ class AlertDelivery:
         *,
         stop: threading.Event,
         heartbeats: Beats | None = None,
-        transport_factory: Callable[[AnySinkSettings, Database], SinkTransport] = make_transport,
+        transport_factory: Callable[[AnySinkSettings, AlertingSettings, Database], SinkTransport] = make_transport,
         watch_fleet: bool = True,
     ) -> None:
         self.sink_workers = [
-            SinkWorker(alerting, sink, transport_factory(sink, database), database, stop=stop, heartbeats=heartbeats)
+            SinkWorker(alerting, sink, transport_factory(sink, alerting, database), database, stop=stop, heartbeats=heartbeats)
             for sink in alerting.sinks
         ]
         self.watcher = (

@@ -2,7 +2,7 @@
 node's next verdict depends on (calibration peaks, recent verdicts, recent sensor faults)."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from datetime import datetime
 from typing import Any
 
@@ -75,6 +75,22 @@ def latest_detection(session: Session, node_id: str) -> DetectionRow | None:
         .limit(1)
     )
     return session.scalars(statement).first()
+
+
+def latest_detections(session: Session, node_ids: Collection[str]) -> dict[str, DetectionRow]:
+    """The most recent verdict of each of ``node_ids`` (nodes without one are absent), in one query."""
+    if not node_ids:
+        return {}
+    rank = (
+        func.row_number()
+        .over(partition_by=DetectionRow.node_id, order_by=(DetectionRow.created_at.desc(), DetectionRow.id.desc()))
+        .label("rank")
+    )
+    ranked = select(DetectionRow.id, rank).where(DetectionRow.node_id.in_(list(node_ids))).subquery()
+    rows = session.scalars(
+        select(DetectionRow).join(ranked, ranked.c.id == DetectionRow.id).where(ranked.c.rank == 1)
+    ).all()
+    return {row.node_id: row for row in rows}
 
 
 def detection_for(session: Session, measurement_id: int) -> DetectionRow | None:

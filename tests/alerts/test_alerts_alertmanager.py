@@ -1,15 +1,17 @@
 """Alertmanager sink against a stand-in that validates every POST against the v2 postableAlerts schema."""
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import datetime, timedelta
 
 import pytest
 
-from alerts.alertmanager import OFFLINE_ALERT, SENSOR_FAULT_ALERT, AlertmanagerTransport
+from alerts.alarms import BaselineSet, alarm_change, alarm_events, open_alarms
+from alerts.alertmanager import OFFLINE_ALERT, SENSOR_FAULT_ALERT, AlertmanagerTransport, rfc3339
 from alerts.delivery import SinkWorker
 from alerts.events import node_offline_event, node_online_event
 from db.measurements import add_event
-from db.models import DeliveryStatus
+from db.models import DeliveryStatus, NodeRow, NodeState
+from db.records import DetectionInput
 from tests.support.alerts_fixtures import (
     T0,
     alerting,
@@ -22,6 +24,7 @@ from tests.support.alerts_fixtures import (
     sink_worker,
 )
 from tests.support.alerts_receivers import HANG, alertmanager_receiver, fail
+from tests.support.db_fixtures import store_sample
 from tests.support.process_harness import wait_until
 
 pytestmark = pytest.mark.timeout(60)
@@ -224,5 +227,115 @@ def test_a_sensor_fault_fires_per_receiver_is_re_sent_and_its_clearing_resolves_
         assert am.invalid == []
         assert sorted(a["labels"].get("rx_index", "-") for a in am.requests[-1].json()) == ["-", "2"], \
             "the cleared receiver is no longer re-sent, the other one still is"
+    finally:
+        am.close()
+
+
+def test_a_re_send_carries_the_current_di_estimate_and_map_not_those_of_the_raise(outbox_db, stop):
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        clock = Monotonic()
+        worker = worker_with_clock(settings, outbox_db, stop, clock)
+        (raised,) = put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage")])
+        worker.run_once()
+        # The defect grows: a later reading of the same node, DI 0.61 at 1830 mm / 97 deg.
+        grown = DetectionInput(peak_di=0.61, threshold=0.3, state=NodeState.DAMAGE, axial_mm=1830.0, angle_deg=97.0)
+        with outbox_db.write() as session:
+            later = store_sample(session, "node-a", detection=grown)
+        clock.now_s += 3600
+        worker.run_once()
+        assert am.invalid == []
+        (resent,) = am.requests[-1].json()
+        notes = resent["annotations"]
+        assert notes["di"] == "DI 0.61 vs threshold 0.3" and notes["location"] == "1830 mm axial, 97 deg"
+        assert notes["measurement_url"].endswith(f"/api/v1/measurements/{later.id}")
+        assert resent["generatorURL"].endswith(f"/api/v1/measurements/{later.id}")
+        assert "DI 0.61" in notes["summary"] and notes["event_id"] == str(raised.id)
+        assert resent["startsAt"] == rfc3339(T0)  # still the alarm that began at the raise
+    finally:
+        am.close()
+
+
+def test_an_offline_alert_carries_no_di_or_location(outbox_db, stop):
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        put_events(outbox_db, [node_offline_event(settings, node_id="node-c", state="ok", last_seen_at=T0,
+                                                  now=T0.replace(hour=13))])
+        sink_worker(settings, "am", outbox_db, stop).run_once()
+        for request in am.requests:
+            (alert,) = request.json()
+            assert alert["labels"]["alertname"] == OFFLINE_ALERT
+            assert not {"di", "location"} & set(alert["annotations"]), alert["annotations"]
+            assert alert["annotations"]["node_url"].endswith("/api/v1/nodes/node-c")
+    finally:
+        am.close()
+
+
+def test_a_damage_alarm_ended_by_a_new_baseline_resolves_both_severities_and_is_no_longer_re_sent(outbox_db, stop):
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        clock = Monotonic()
+        worker = worker_with_clock(settings, outbox_db, stop, clock)
+        (raised,) = put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage")])
+        worker.run_once()
+        with outbox_db.write() as session:
+            session.get(NodeRow, "node-a").state = NodeState.CALIBRATING
+            alarms = open_alarms(session, "node-a")
+            baseline = BaselineSet(9, T0 + timedelta(hours=1), "alice", "clamp repaired")
+            change = alarm_change(alarms, state="calibrating", baseline=baseline)
+            (cleared,) = alarm_events(settings, change, alarms, node_id="node-a", from_state="damage",
+                                      to_state="calibrating", measurement_id=30, peak_di=0.01, threshold=None,
+                                      axial_mm=None, angle_deg=None, reason=None, occurred_at=T0 + timedelta(hours=2))
+            add_event(session, cleared, node_id="node-a")
+        worker.run_once()
+        ended = am.requests[-1].json()
+        assert sorted(a["labels"]["severity"] for a in ended) == ["critical", "warning"]
+        assert all(a["endsAt"] == rfc3339(T0 + timedelta(hours=2)) for a in ended)
+        assert ended[0]["annotations"]["ended_by"] == "rebaseline"
+        assert ended[0]["annotations"]["alarm_id"] == str(raised.id)
+        sent = len(am.requests)
+        clock.now_s += 3600
+        worker.run_once()
+        assert len(am.requests) == sent, "nothing active is left to re-send"
+    finally:
+        am.close()
+
+
+def test_labels_from_the_sink_settings_are_added_to_every_alert(outbox_db, stop):
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url, labels={"site": "north-7"}))
+        put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "suspected")])
+        sink_worker(settings, "am", outbox_db, stop).run_once()
+        assert am.invalid == [] and am.requests
+        assert all(a["labels"]["site"] == "north-7" for r in am.requests for a in r.json())
+    finally:
+        am.close()
+
+
+@pytest.mark.parametrize("labels, why", [({"node": "x"}, "set by PipeSentry"), ({"bad-name": "x"}, "label name")])
+def test_sink_labels_that_would_replace_an_alerts_own_or_are_no_label_names_are_refused(labels, why):
+    with pytest.raises(ValueError, match=why):
+        alerting(am_sink("http://127.0.0.1:9093", labels=labels))
+
+
+def test_an_alarm_of_an_older_release_that_never_heard_its_end_is_not_re_sent_once_the_node_is_sound(outbox_db, stop):
+    # Schema 1 ended a damage alarm open through a blind spell with monitoring_restored only.
+    am = alertmanager_receiver()
+    try:
+        settings = alerting(am_sink(am.url))
+        put_state_events(outbox_db, settings, node_ids=("node-a",),
+                         cycle=[("ok", "damage"), ("damage", "no_valid_baseline"), ("no_valid_baseline", "ok")])
+        clock = Monotonic()
+        worker = worker_with_clock(settings, outbox_db, stop, clock)
+        for _ in range(3):
+            worker.run_once()
+        sent = len(am.requests)
+        clock.now_s += 3600
+        worker.run_once()
+        assert len(am.requests) == sent, "the node reads ok: nothing of it is active"
     finally:
         am.close()

@@ -14,7 +14,7 @@ from alerts.delivery import SinkWorker, make_transport
 from alerts.events import sensor_fault_cleared_event, sensor_fault_event, state_change_event
 from db.database import Database, open_database
 from db.measurements import add_event
-from db.models import DeliveryRow, EventRow
+from db.models import DeliveryRow, EventRow, NodeRow, NodeState
 from db.nodes import upsert_node
 from db.records import EventInput
 from tests.support.db_fixtures import node_info
@@ -49,7 +49,7 @@ def alerting(*sinks: dict, **top) -> AlertingSettings:
 
 def put_state_events(database: Database, settings: AlertingSettings, node_ids=NODES, cycle=CYCLE,
                      start_measurement_id: int = 1) -> list[EventInput]:
-    """Each node goes through ``cycle``; one transaction per event, in creation order."""
+    """Each node goes through ``cycle`` (its stored state follows); one transaction per event, in creation order."""
     events = []
     measurement_id = start_measurement_id
     for step, (from_state, to_state) in enumerate(cycle):
@@ -61,8 +61,11 @@ def put_state_events(database: Database, settings: AlertingSettings, node_ids=NO
             )
             measurement_id += 1
             with database.write() as session:
-                add_event(session, event, node_id=node_id)
-            events.append(event)
+                session.get(NodeRow, node_id).state = NodeState(to_state)
+                if event is not None:
+                    add_event(session, event, node_id=node_id)
+            if event is not None:
+                events.append(event)
     return events
 
 
@@ -103,7 +106,7 @@ def deliveries(database: Database, sink: str | None = None) -> list[tuple[Delive
 
 def sink_worker(settings: AlertingSettings, name: str, database: Database, stop: threading.Event, **kw) -> SinkWorker:
     sink = settings.sink(name)
-    return SinkWorker(settings, sink, make_transport(sink, database), database, stop=stop, **kw)
+    return SinkWorker(settings, sink, make_transport(sink, settings, database), database, stop=stop, **kw)
 
 
 @pytest.fixture
