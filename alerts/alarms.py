@@ -206,14 +206,14 @@ def open_alarms(session: Session, node_id: str) -> NodeAlarms:
     return _fold(rows, _sinks_of(session, [r.id for r in rows if r.kind in RAISED_BY]))
 
 
-def open_alarms_by_node(session: Session) -> dict[str, NodeAlarms]:
-    """Every node's open alarms (nodes without any are absent)."""
+def open_alarms_by_node(session: Session, *, with_sinks: bool = True) -> dict[str, NodeAlarms]:
+    """Every node's open alarms (nodes without any are absent); ``with_sinks=False`` leaves out who had them."""
     rows = session.scalars(
         select(EventRow)
         .where(EventRow.node_id.is_not(None), EventRow.kind.in_([str(k) for k in ALARM_KINDS]))
         .order_by(EventRow.created_at, EventRow.id)
     ).all()
-    sinks = _sinks_of(session, [r.id for r in rows if r.kind in RAISED_BY])
+    sinks = _sinks_of(session, [r.id for r in rows if r.kind in RAISED_BY]) if with_sinks else {}
     by_node: dict[str, list[EventRow]] = {}
     for row in rows:
         by_node.setdefault(str(row.node_id), []).append(row)

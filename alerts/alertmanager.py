@@ -30,7 +30,6 @@ from typing import Any
 from alerts.config import AlertmanagerSinkSettings
 from alerts.errors import AlertError
 from alerts.events import (
-    BLIND_STATE,
     DAMAGE_KINDS,
     OUTAGE_KINDS,
     SENSOR_FAULT_KINDS,
@@ -72,7 +71,7 @@ def damage_labels(node_id: str, state: str) -> dict[str, str]:
 
 
 def blind_labels(node_id: str) -> dict[str, str]:
-    return {"alertname": BLIND_ALERT, "node": node_id, "severity": "warning", "state": BLIND_STATE}
+    return {"alertname": BLIND_ALERT, "node": node_id, "severity": "warning", "state": NodeState.NO_VALID_BASELINE.value}
 
 
 def offline_labels(node_id: str) -> dict[str, str]:

@@ -98,7 +98,8 @@ class SlackSinkSettings(SinkSettings):
 
 
 class MqttSinkSettings(SinkSettings):
-    """An MQTT broker: a retained QoS 1 state message on ``{topic_prefix}/{node_id}/state``."""
+    """An MQTT broker: each node's current state retained on ``{topic_prefix}/{node_id}/state``, its events
+    on ``.../events``, the gateway's status with a last will on ``{gateway_topic}/status``."""
 
     type: Literal["mqtt"] = "mqtt"
     host: str = Field(min_length=1)
@@ -106,7 +107,14 @@ class MqttSinkSettings(SinkSettings):
     username: str | None = None
     password: SecretStr | None = None
     tls: bool = False
-    topic_prefix: str = Field("pipesentry/nodes", min_length=1, pattern=r"^[^#+]+$")
+    topic_prefix: str = Field("pipesentry/nodes", min_length=1, pattern=r"^[^#+]+$",
+                              description="{prefix}/{node}/state (retained), /events, /receivers/{rx}")
+    gateway_topic: str = Field(
+        "pipesentry/gateway", min_length=1, pattern=r"^[^#+]+$",
+        description="{topic}/status (retained, with the last will) and {topic}/events; give each gateway "
+        "sharing a broker its own, e.g. pipesentry/gateways/site-12",
+    )
+    state_interval_s: float = Field(5.0, gt=0, le=3600, description="how often node states are checked for changes")
     keepalive_s: int = Field(60, ge=5, le=3600)
 
 

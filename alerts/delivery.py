@@ -97,7 +97,7 @@ def make_transport(sink: AnySinkSettings, alerting: AlertingSettings, database: 
     if isinstance(sink, SlackSinkSettings):
         return SlackTransport(sink)
     if isinstance(sink, MqttSinkSettings):
-        return MqttTransport(sink)
+        return MqttTransport(sink, alerting, database)
     raise TypeError(f"no transport for sink type {type(sink).__name__}")
 
 

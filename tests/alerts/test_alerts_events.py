@@ -156,7 +156,7 @@ def test_a_sensor_fault_without_a_receiver_index_is_refused():
 
 def test_decommissioning_and_recommissioning_are_told_once_each_with_who_and_why():
     from alerts.events import node_decommissioned_event, node_recommissioned_event
-    from alerts.mqtt import mqtt_message, mqtt_topic
+    from alerts.mqtt import mqtt_publications
     from alerts.outbox import OutboxEvent
     from alerts.slack import slack_text
 
@@ -172,8 +172,8 @@ def test_decommissioning_and_recommissioning_are_told_once_each_with_who_and_why
     assert "admin:kim" in gone.payload["summary"] and "line 3 replaced" in gone.payload["summary"]
     assert back.payload["decommissioned_since"] == at.isoformat() and "back in service" in back.payload["summary"]
     item = OutboxEvent(1, "scada", 0, None, gone.id, "node-7", gone.kind, gone.severity, gone.payload, at)
-    topic, retained = mqtt_topic(SETTINGS.sinks[0], item)  # "all": an mqtt sink
-    assert (topic, retained) == ("pipesentry/nodes/node-7/state", True)
-    assert mqtt_message(item)["decommissioned"]["by"] == "admin:kim"
+    ((topic, message, retained),) = mqtt_publications(SETTINGS.sinks[0], item)  # "all": an mqtt sink
+    assert (topic, retained) == ("pipesentry/nodes/node-7/events", False)  # the state topic is the current state
+    assert message["decommissioned"]["by"] == "admin:kim"
     assert gone.sinks == ("all",)  # info goes where info is wanted
     assert slack_text(item).startswith(":no_entry_sign: node node-7 decommissioned by admin:kim")
