@@ -10,6 +10,7 @@ pytest_plugins = [
     "tests.support.db_fixtures",
     "tests.support.alerts_fixtures",
     "tests.support.api_fixtures",
+    "tests.support.mqtt_broker",
 ]
 
 # Fixtures that start the whole system (mock nodes, a gateway and an API server): a test using one is e2e.

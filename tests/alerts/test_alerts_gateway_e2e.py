@@ -152,7 +152,7 @@ def test_a_receiver_dying_in_a_real_gateway_is_told_to_the_webhook_once_across_a
     scenario = tmp_path / "scenario.toml"
     scenario.write_text(scenario_node("pipe-1", 11))
     control = tmp_path / "dead-rx"  # while it exists, the mock node's receiver 3 keeps 2 % of its signal
-    mock = Proc([PYTHON, str(Path(__file__).resolve().parents[1] / "support" / "mock_dead_receiver.py"), "--scenario", str(scenario),
+    mock = Proc([PYTHON, str(Path(__file__).resolve().parents[1] / "support" / "mock_on_demand.py"), "--scenario", str(scenario),
                  "--link-dir", str(links)], tmp_path, "mock", env={"PIPESENTRY_TEST_DEAD_RX_FILE": str(control)})
     gateways = []
 

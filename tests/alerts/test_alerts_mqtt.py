@@ -3,14 +3,11 @@ stream, the gateway's status and last will; PUBACK awaited."""
 from __future__ import annotations
 
 import json
-import os
 import socket
 import threading
 import uuid
 
-import paho.mqtt.client as mqtt
 import pytest
-from paho.mqtt.enums import CallbackAPIVersion
 
 from alerts.delivery import SinkWorker
 from alerts.errors import DeliveryFailed
@@ -33,6 +30,7 @@ from tests.support.alerts_fixtures import (
     sink_worker,
 )
 from tests.support.db_fixtures import node_info, store_sample
+from tests.support.mqtt_broker import BROKER, Subscriber, clear_retained
 from tests.support.process_harness import PYTHON, Proc, wait_until
 
 pytestmark = pytest.mark.timeout(60)
@@ -48,63 +46,6 @@ class Monotonic:
 
     def __call__(self) -> float:
         return self.now_s
-BROKER = ("127.0.0.1", 1883)
-
-
-@pytest.fixture(scope="module")
-def broker() -> tuple[str, int]:
-    try:
-        socket.create_connection(BROKER, timeout=2).close()
-    except OSError as exc:
-        reason = f"no MQTT broker on {BROKER[0]}:{BROKER[1]} ({exc}); start it: mosquitto -d -c /etc/mosquitto/mosquitto.conf"
-        if os.environ.get("CI") == "true":
-            pytest.fail(reason)
-        pytest.skip(reason)
-    return BROKER
-
-
-class Subscriber:
-    """A real MQTT client recording what arrives on a topic filter."""
-
-    def __init__(self, topic: str) -> None:
-        self.messages: list[mqtt.MQTTMessage] = []
-        self._cond = threading.Condition()
-        self._subscribed = threading.Event()
-        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"test-sub-{uuid.uuid4().hex[:8]}")
-        self.client.on_connect = lambda c, *_: c.subscribe(topic, qos=1)
-        self.client.on_subscribe = lambda *_: self._subscribed.set()
-        self.client.on_message = self._on_message
-        self.client.connect(*BROKER)
-        self.client.loop_start()
-        assert self._subscribed.wait(10), "subscription not acknowledged"
-
-    def _on_message(self, client, userdata, message) -> None:
-        with self._cond:
-            self.messages.append(message)
-            self._cond.notify_all()
-
-    def wait_for(self, count: int, timeout_s: float = 10) -> list[mqtt.MQTTMessage]:
-        with self._cond:
-            assert self._cond.wait_for(lambda: len(self.messages) >= count, timeout_s), \
-                f"got {len(self.messages)} of {count} messages"
-            return list(self.messages)
-
-    def close(self) -> None:
-        self.client.disconnect()
-        self.client.loop_stop()
-
-
-def clear_retained(*topics: str) -> None:
-    """Remove retained messages the test left on the shared broker."""
-    client = mqtt.Client(CallbackAPIVersion.VERSION2)
-    client.connect(*BROKER)
-    client.loop_start()
-    for topic in topics:
-        client.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
-    client.disconnect()
-    client.loop_stop()
-
-
 def mqtt_sink(prefix: str, **policy) -> dict:
     return {"type": "mqtt", "name": "scada", "host": BROKER[0], "port": BROKER[1], "topic_prefix": prefix,
             "gateway_topic": prefix.replace("/nodes", "/gateway"), "state_interval_s": 0.05, **fast_policy(**policy)}
