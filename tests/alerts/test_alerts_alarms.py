@@ -1,13 +1,18 @@
 """Open alarms read from a real SQLite outbox, which sinks had them, and the ends a decommissioning gives."""
 from __future__ import annotations
 
+import threading
 from datetime import timedelta
 
-from sqlalchemy import update
+from sqlalchemy import select, update
 
-from alerts.alarms import Alarm, EndCause, decommissioning_events, open_alarms, open_alarms_by_node
+from alerts.alarms import ENDED_BY, RAISED_BY, Alarm, EndCause, decommissioning_events, open_alarms, open_alarms_by_node
 from alerts.events import EventKind, node_offline_event, node_online_event
-from db.models import DeliveryRow, DeliveryStatus, Severity
+from db.models import DeliveryRow, DeliveryStatus, EventRow, Severity
+from db.nodes import decommission_node
+from gateway.config import NodeSettings
+from gateway.watchdog import Heartbeats
+from gateway.worker import NodeWorker
 from tests.support.alerts_fixtures import T0, alerting, dead_receiver, put_events, put_state_events, sensor_fault_pair
 
 HOOK = {"type": "webhook", "name": "hook", "url": "http://127.0.0.1:9/", "secret": "whsec_" + "QUJD" * 8}
@@ -97,6 +102,25 @@ def test_decommissioning_ends_every_open_alarm_with_its_own_end_once(outbox_db):
 
 
 def test_every_alarm_kind_belongs_to_one_alarm():
-    from alerts.alarms import ENDED_BY, RAISED_BY
-
     assert set(RAISED_BY.values()) == set(ENDED_BY.values()) == set(Alarm)
+
+
+def test_the_gateway_noticing_a_decommissioning_ends_the_nodes_alarms_before_telling_it_once(outbox_db):
+    settings = alerting(HOOK)
+    put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage")])
+    fault, _ = sensor_fault_pair(settings, "node-a", dead_receiver(3))
+    put_events(outbox_db, [fault])
+    with outbox_db.write() as session:
+        decommission_node(session, "node-a", who="admin:ops", reason="line 3 replaced")
+
+    def worker() -> NodeWorker:  # a fresh worker: the gateway (re)started
+        return NodeWorker(NodeSettings(id="node-a", url="loop://"), outbox_db, Heartbeats(), threading.Event(),
+                          alerting=settings)
+
+    assert worker()._decommissioned() and worker()._decommissioned()  # noticed twice (a restart in between)
+    with outbox_db.session() as session:
+        told = [(e.kind, e.payload.get("ended_by", {}).get("cause")) for e in session.scalars(
+            select(EventRow).where(EventRow.node_id == "node-a").order_by(EventRow.created_at, EventRow.id))]
+        assert open_alarms(session, "node-a").all() == []
+    assert told == [("damage_raised", None), ("sensor_fault", None), ("damage_cleared", "decommissioning"),
+                    ("sensor_fault_cleared", "decommissioning"), ("node_decommissioned", None)]
