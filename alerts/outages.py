@@ -7,6 +7,7 @@ event id however often it is checked. Right after the gateway starts, nodes are 
 """
 from __future__ import annotations
 
+import uuid
 from datetime import datetime
 
 from sqlalchemy import select
@@ -30,13 +31,15 @@ def check_outages(
     added = []
     # A decommissioned node is not polled: its silence is intended, not an outage.
     for node in list_nodes(session, include_decommissioned=False):
-        open_outage = _open_outage(session, node.node_id)
+        latest = _latest_outage_event(session, node.node_id)
+        open_outage = latest if latest is not None and latest.kind == EventKind.NODE_OFFLINE else None
         if open_outage is None:
             reference = max(node.last_seen_at, watching_since)
             if (now - reference).total_seconds() <= settings.offline_after_s:
                 continue
             event = node_offline_event(
-                settings, node_id=node.node_id, state=node.state.value, last_seen_at=node.last_seen_at, now=now
+                settings, node_id=node.node_id, state=node.state.value, last_seen_at=node.last_seen_at, now=now,
+                after=_ended_by_decommissioning(latest, node.last_seen_at),
             )
         else:
             offline_since = datetime.fromisoformat(open_outage.payload["last_seen_at"])
@@ -55,12 +58,22 @@ def check_outages(
     return added
 
 
-def _open_outage(session: Session, node_id: str) -> EventRow | None:
-    """The node's newest outage event if it is a node_offline (not yet followed by node_online)."""
-    latest = session.scalars(
+def _latest_outage_event(session: Session, node_id: str) -> EventRow | None:
+    """The node's newest outage event (a node_offline not yet followed by node_online: an open outage)."""
+    return session.scalars(
         select(EventRow)
         .where(EventRow.node_id == node_id, EventRow.kind.in_([str(k) for k in OUTAGE_KINDS]))
         .order_by(EventRow.created_at.desc(), EventRow.id.desc())
         .limit(1)
     ).first()
-    return latest if latest is not None and latest.kind == EventKind.NODE_OFFLINE else None
+
+
+def _ended_by_decommissioning(latest: EventRow | None, last_seen_at: datetime) -> uuid.UUID | None:
+    """The id of the end of an offline alarm over the same silence, when a decommissioning ended it
+    (the node, recommissioned, is still silent: a new alarm, not the old one again)."""
+    if latest is None or latest.kind != EventKind.NODE_ONLINE:
+        return None
+    ended_by = latest.payload.get("ended_by") or {}
+    if ended_by.get("cause") != "decommissioning" or latest.payload.get("offline_since") != last_seen_at.isoformat():
+        return None
+    return latest.id

@@ -78,3 +78,22 @@ def test_every_new_baseline_gets_one_event_whoever_set_it(outbox_db):
     assert latest["created_by"] == "operator:alice" and latest["occurred_at"] == (T0 + timedelta(hours=1)).isoformat()
     with outbox_db.write() as session:  # a month later, old baselines are not looked at again
         assert check_baseline_changes(session, SETTINGS, now=T0 + timedelta(days=30)) == []
+
+
+def test_a_node_whose_offline_alarm_ended_with_its_decommissioning_is_reported_again_if_still_silent(outbox_db):
+    from alerts.alarms import decommissioning_events, open_alarms
+    from db.measurements import add_event_once
+    from db.nodes import decommission_node, recommission_node
+
+    assert check(outbox_db, T0 + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE] * 3
+    with outbox_db.write() as session:
+        decommission_node(session, "node-c", who="admin:ops", reason="moved", now=T0 + timedelta(minutes=20))
+        for end in decommissioning_events(SETTINGS, open_alarms(session, "node-c"), node_id="node-c", state="ok",
+                                          decommissioned_at=T0 + timedelta(minutes=20), by="admin:ops", reason="moved"):
+            add_event_once(session, end, node_id="node-c", now=T0 + timedelta(minutes=20))
+        recommission_node(session, "node-c")
+    (again,) = check(outbox_db, T0 + timedelta(minutes=40))
+    assert again == EventKind.NODE_OFFLINE  # a new alarm, not refused as the old one's id
+    with outbox_db.session() as session:
+        assert open_alarms(session, "node-c").offline is not None
+    assert check(outbox_db, T0 + timedelta(minutes=41)) == []
