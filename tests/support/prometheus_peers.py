@@ -1,11 +1,11 @@
-"""The real Prometheus tools as test peers: promtool, amtool, and an Alertmanager process.
+"""The real Prometheus tools as test peers: promtool, amtool, and Alertmanager and Prometheus processes.
 
 Debian's ``prometheus`` (2.42, with promtool) and ``prometheus-alertmanager`` (0.25, with amtool)
 packages; ``make test`` installs them when missing (scripts/ensure-test-deps.sh). A test that
 needs one skips with the reason where it is absent, and fails under CI (``CI=true``).
 
-:class:`Alertmanager` runs its own process on a 127.0.0.1 ephemeral port with a temporary data
-directory and clustering off (never the system service), and stops it at the end.
+:class:`Alertmanager` and :class:`Prometheus` run their own processes on 127.0.0.1 ephemeral ports
+with temporary data directories (never the system services), and stop them at the end.
 """
 from __future__ import annotations
 
@@ -56,35 +56,54 @@ def alertmanager_config(webhook_url: str, *, resolve_timeout: str = "5m") -> dic
     }
 
 
-class Alertmanager:
-    """A real Alertmanager on 127.0.0.1:<ephemeral> with its own data directory."""
+class _Served:
+    """A real Prometheus-project server on 127.0.0.1:<ephemeral> with its own data directory."""
 
-    def __init__(self, work_dir: Path, config: dict[str, Any], name: str = "alertmanager") -> None:
-        binary = require_binary("prometheus-alertmanager")
-        work_dir.mkdir(parents=True, exist_ok=True)
-        config_path = work_dir / f"{name}.yml"
-        config_path.write_text(yaml.safe_dump(config, sort_keys=False))
-        self.proc = Proc(
-            [binary, f"--config.file={config_path}", f"--storage.path={work_dir / (name + '-data')}",
-             "--web.listen-address=127.0.0.1:0", "--cluster.listen-address=", "--log.level=info"],
-            work_dir, name,
-        )
+    def __init__(self, binary: str, args: list[str], work_dir: Path, name: str) -> None:
+        self.proc = Proc([require_binary(binary), *args, "--web.listen-address=127.0.0.1:0"], work_dir, name)
         try:
-            port = wait_until(self._port, 30, what="alertmanager to listen")
+            port = wait_until(self._port, 30, what=f"{name} to listen")
             self.url = f"http://127.0.0.1:{port}"
-            wait_until(self._ready, 30, what="alertmanager to be ready")
+            wait_until(self._ready, 30, what=f"{name} to be ready")
         except BaseException:
             self.close()
             raise
 
     def _port(self) -> int | None:
         if not self.proc.alive():
-            raise AssertionError(f"alertmanager exited: {self.proc.stderr[-2000:]}")
+            raise AssertionError(f"{self.proc.name} exited: {self.proc.stderr[-2000:]}")
         found = LISTENING.search(self.proc.stderr)
         return int(found.group(1)) if found else None
 
     def _ready(self) -> bool:
         return httpx.get(f"{self.url}/-/ready", timeout=2).status_code == 200
+
+    def close(self) -> None:
+        self.proc.terminate(timeout_s=10)
+        self.proc.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def _config_file(work_dir: Path, name: str, config: dict[str, Any]) -> Path:
+    work_dir.mkdir(parents=True, exist_ok=True)
+    path = work_dir / f"{name}.yml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+class Alertmanager(_Served):
+    """A real Alertmanager (clustering off, never the system service)."""
+
+    def __init__(self, work_dir: Path, config: dict[str, Any], name: str = "alertmanager") -> None:
+        path = _config_file(work_dir, name, config)
+        super().__init__("prometheus-alertmanager", [
+            f"--config.file={path}", f"--storage.path={work_dir / (name + '-data')}", "--cluster.listen-address=",
+            "--log.level=info"], work_dir, name)
 
     def alerts(self, **labels: str) -> list[dict[str, Any]]:
         """The active alerts (``GET /api/v2/alerts``; resolved ones are not listed) matching ``labels``."""
@@ -99,12 +118,21 @@ class Alertmanager:
         assert result.returncode == 0, result.stderr
         return json.loads(result.stdout or "[]")
 
-    def close(self) -> None:
-        self.proc.terminate(timeout_s=10)
-        self.proc.close()
 
-    def __enter__(self) -> Alertmanager:
-        return self
+class Prometheus(_Served):
+    """A real Prometheus server on ``config_path`` (which may name rule files next to it)."""
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def __init__(self, work_dir: Path, config_path: Path, name: str = "prometheus") -> None:
+        super().__init__("prometheus", [
+            f"--config.file={config_path}", f"--storage.tsdb.path={work_dir / (name + '-data')}",
+            "--log.level=info"], work_dir, name)
+
+    def api(self, path: str, **params: str) -> Any:
+        response = httpx.get(f"{self.url}/api/v1/{path}", params=params, timeout=10)
+        response.raise_for_status()
+        body = response.json()
+        assert body["status"] == "success", body
+        return body["data"]
+
+    def query(self, expr: str) -> list[dict[str, Any]]:
+        return self.api("query", query=expr)["result"]
