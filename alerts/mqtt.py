@@ -58,11 +58,12 @@ from db.models import DetectionRow, NodeRow
 from db.nodes import list_nodes
 from db.queries import latest_detections
 from db.release import release_labels
+from retry_timing.backoff import Backoff
 
 log = logging.getLogger("pipesentry.alerts")
 
 QOS = 1
-RECONNECT_CAP_S = 60.0  # the status/state connection is retried with backoff up to this
+RECONNECT_CAP_S = 60.0  # a failed state refresh is retried after at most this (full-jitter backoff)
 # Fields of a state document that change without the state changing (left out of "has it changed").
 _VOLATILE = ("updated_at", "last_seen_at")
 
@@ -186,6 +187,8 @@ class MqttTransport:
         self._published: dict[str, str] = {}  # node -> the state document last acknowledged (stable part)
         self._next_sync = 0.0
         self._failures = 0
+        # Many gateways may share one broker: after its outage they come back spread out.
+        self._backoff = Backoff(settings.backoff_base_s, max(RECONNECT_CAP_S, settings.backoff_base_s), "full")
 
     def endpoint_fingerprint(self) -> str:
         return fingerprint("mqtt", self.settings.host, str(self.settings.port), self.settings.topic_prefix)
@@ -205,7 +208,7 @@ class MqttTransport:
             published = self.sync_states(client)
         except (DeliveryFailed, StorageError) as exc:
             self._failures += 1
-            wait_s = min(RECONNECT_CAP_S, self.settings.backoff_base_s * 2 ** (self._failures - 1))
+            wait_s = self._backoff.delay_s(self._failures)
             self._next_sync = self._monotonic() + wait_s
             log.warning("mqtt %s: node states not published, next try in %.0f s: %s", self.settings.name, wait_s, exc)
             return
