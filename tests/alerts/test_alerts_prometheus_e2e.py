@@ -4,7 +4,6 @@ a healthy node, and every Grafana panel's query is valid PromQL that finds serie
 from __future__ import annotations
 
 import json
-import re
 import shutil
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from tests.support.alerts_receivers import HttpReceiver
 from tests.support.api_fixtures import ApiServer, create_test_keys
 from tests.support.process_harness import (
     gateway_config,
+    gateway_metrics_port,
     gateway_node,
     scenario_node,
     start_gateway,
@@ -27,7 +27,6 @@ from tests.support.prometheus_peers import Prometheus
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(180)]
 DOCKER = Path(__file__).resolve().parents[2] / "docker"
-SERVING = re.compile(r"metrics on http://127\.0\.0\.1:(\d+)/metrics")
 NODE = "pipe-1"
 
 
@@ -58,8 +57,7 @@ def test_a_real_prometheus_scrapes_both_jobs_of_the_shipped_config_and_evaluates
                 f'name = "hook"\nurl = "{receiver.url}"\nsecret = "whsec_{"QUJD" * 8}"\n')
         (tmp_path / "gateway.toml").write_text(gateway_config(db_path, [gateway_node(NODE, links)]) + sink)
         gateway = start_gateway(tmp_path / "gateway.toml", tmp_path)
-        gateway_port = int(wait_until(lambda: SERVING.search(gateway.stderr), 30, what="the gateway's metrics port")
-                           .group(1))
+        gateway_port = gateway_metrics_port(gateway)
         wait_until(lambda: "measurement 3 stored" in gateway.stderr and receiver.accepted(), 60,
                    what="a few measurements and a delivery (baseline_changed)")
         keys = create_test_keys(f"sqlite:///{db_path}")

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import base64
 import logging
-import re
 import socket
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from gateway.metrics import serve_metrics
 from tests.support.alerts_receivers import HttpReceiver, fail
 from tests.support.process_harness import (
     gateway_config,
+    gateway_metrics_port,
     gateway_node,
     scenario_node,
     start_gateway,
@@ -25,7 +25,6 @@ from tests.support.process_harness import (
     wait_until,
 )
 
-SERVING = re.compile(r"metrics on http://127\.0\.0\.1:(\d+)/metrics")
 SECRET = "whsec_" + base64.b64encode(b"m" * 32).decode()
 
 
@@ -57,7 +56,7 @@ def test_the_gateway_counts_cycles_retries_failures_and_deliveries_on_its_metric
                 f'url = "{receiver.url}"\nsecret = "{SECRET}"\nbackoff_base_s = 0.05\nbackoff_cap_s = 0.1\n')
         config.write_text(gateway_config(tmp_path / "gateway.db", nodes) + sink)
         gateway = start_gateway(config, tmp_path)
-        port = int(wait_until(lambda: SERVING.search(gateway.stderr), 30, what="the metrics port in the log").group(1))
+        port = gateway_metrics_port(gateway)
 
         def scrape() -> dict:
             response = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5)

@@ -5,7 +5,6 @@ retained messages they leave. Without a broker the tests skip with the reason; u
 """
 from __future__ import annotations
 
-import os
 import socket
 import threading
 import uuid
@@ -13,6 +12,8 @@ import uuid
 import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
+
+from tests.support.peers import peer_missing
 
 BROKER = ("127.0.0.1", 1883)
 
@@ -22,10 +23,8 @@ def broker() -> tuple[str, int]:
     try:
         socket.create_connection(BROKER, timeout=2).close()
     except OSError as exc:
-        reason = f"no MQTT broker on {BROKER[0]}:{BROKER[1]} ({exc}); start it: mosquitto -d -c /etc/mosquitto/mosquitto.conf"
-        if os.environ.get("CI") == "true":
-            pytest.fail(reason)
-        pytest.skip(reason)
+        peer_missing(f"no MQTT broker on {BROKER[0]}:{BROKER[1]} ({exc}); "
+                     "start it: mosquitto -d -c /etc/mosquitto/mosquitto.conf")
     return BROKER
 
 

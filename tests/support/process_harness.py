@@ -5,6 +5,7 @@ Every wait is bounded; a process still running at the end of a test is killed.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -101,6 +102,15 @@ def start_gateway(
     config: Path, log_dir: Path, name: str = "gateway", env: dict | None = None, nice: int = 0
 ) -> Proc:
     return Proc([PYTHON, "-m", "pipesentry", "gateway", "--config", str(config)], log_dir, name, env=env, nice=nice)
+
+
+GATEWAY_METRICS = re.compile(r"metrics on http://127\.0\.0\.1:(\d+)/metrics")
+
+
+def gateway_metrics_port(gateway: Proc, timeout_s: float = 30.0) -> int:
+    """The port a gateway started with ``[metrics] port = 0`` serves its metrics on (from its log)."""
+    found = wait_until(lambda: GATEWAY_METRICS.search(gateway.stderr), timeout_s, what="the gateway's metrics port")
+    return int(found.group(1))
 
 
 def gateway_config(db_path: Path, nodes: list[dict], **top) -> str:

@@ -10,7 +10,6 @@ with temporary data directories (never the system services), and stop them at th
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -18,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import pytest
 import yaml
 
+from tests.support.peers import peer_missing
 from tests.support.process_harness import Proc, wait_until
 
 ENSURE = "scripts/ensure-test-deps.sh"
@@ -33,10 +32,7 @@ def require_binary(name: str) -> str:
     """The path of ``name``; skips (fails under CI=true) when it is not installed."""
     path = shutil.which(name)
     if path is None:
-        reason = f"{name} is not installed (Debian package {PACKAGES.get(name, name)!r}; `bash {ENSURE}` installs it)"
-        if os.environ.get("CI") == "true":
-            pytest.fail(reason)
-        pytest.skip(reason)
+        peer_missing(f"{name} is not installed (Debian package {PACKAGES.get(name, name)!r}; `bash {ENSURE}` installs it)")
     return path
 
 
