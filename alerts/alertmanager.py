@@ -35,13 +35,16 @@ from alerts.events import (
     SENSOR_FAULT_KINDS,
     STATE_KINDS,
     EventKind,
+    detection_of,
     detection_text,
     fault_text,
+    location_of,
     location_text,
     measurement_links,
 )
 from alerts.http_post import fingerprint, http_client, post
 from alerts.outbox import OutboxEvent, delivered_events, latest_delivered
+from alerts.payloads import PayloadPart
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
@@ -169,15 +172,16 @@ def _annotations(item: OutboxEvent, current: CurrentReading | None, api_base_url
     elif item.kind in STATE_KINDS:
         detection, location, reason = payload.get("detection"), payload.get("location"), payload.get("reason")
         if current is not None:  # a re-send: what the node reads now
-            detection = _detection_of(current)
-            location = _location_of(current)
+            detection = _dumped(detection_of(current.peak_di, current.threshold))
+            location = _dumped(location_of(current.axial_mm, current.angle_deg))
             reason = current.abstain_reason
             if api_base_url is not None:
                 links.update(measurement_links(api_base_url, current.measurement_id))
             if item.kind == EventKind.DAMAGE_RAISED:
+                raised = datetime.fromisoformat(payload["occurred_at"])
                 annotations["summary"] = (f"{str(payload['state']).upper()} on node {item.node_id}: "
                                           f"{detection_text(detection)} at {location_text(location)} "
-                                          f"(raised {payload['occurred_at'][:16].replace('T', ' ')} UTC)")
+                                          f"(raised {raised:%Y-%m-%d %H:%M} UTC)")
         annotations["di"] = detection_text(detection)
         annotations["location"] = location_text(location)
         if item.kind == EventKind.MONITORING_BLIND and reason:
@@ -188,16 +192,8 @@ def _annotations(item: OutboxEvent, current: CurrentReading | None, api_base_url
     return annotations
 
 
-def _detection_of(current: CurrentReading) -> dict[str, Any] | None:
-    if current.peak_di is None:
-        return None
-    return {"peak_di": current.peak_di, "threshold": current.threshold}
-
-
-def _location_of(current: CurrentReading) -> dict[str, Any] | None:
-    if current.axial_mm is None or current.angle_deg is None:
-        return None
-    return {"axial_mm": current.axial_mm, "angle_deg": current.angle_deg}
+def _dumped(part: PayloadPart | None) -> dict[str, Any] | None:
+    return None if part is None else part.model_dump()
 
 
 def open_sensor_faults(delivered: list[OutboxEvent]) -> list[OutboxEvent]:
