@@ -1,8 +1,11 @@
 """Gateway side of the node protocol: commands with timeouts, bounded retries and verified transfers.
 
 A retried command reuses its request id, so the node answers a repeat from its reply cache
-instead of running it twice (no double acquisition). Bulk replies are reassembled from chunks;
-only lost chunks are asked for again; the whole transfer is checked against its CRC-32C.
+instead of running it twice (no double acquisition); ERROR BUSY is retried the same way, bulk
+reads included. Bulk replies are reassembled from chunks; only lost chunks are asked for again
+(the whole transfer from a node without CHUNK_RETRANSMIT); the whole transfer is checked
+against its CRC-32C. INFO negotiates the protocol version (docs/protocol.md, 3.1): a version-1
+node is spoken to in version 1, and its records carry fewer of their own settings.
 """
 from __future__ import annotations
 
@@ -16,8 +19,12 @@ import numpy as np
 from gateway.transport import NodeClientError, PortVanished, SerialTransport
 from imaging.grid import Grid
 from protocol.bulk import BulkAssembler, BulkError, TransferCrcError
-from protocol.framing import FLAG_LAST, PROTOCOL_VERSION, Frame, FrameDecoder, FrameError, encode_frame
+from protocol.framing import FLAG_LAST, Frame, FrameDecoder, FrameError, encode_frame
 from protocol.messages import (
+    CAP_BASELINE_SLOT,
+    CAP_CHUNK_RETRANSMIT,
+    CAP_ON_BOARD_DI,
+    CAPABILITY_NAMES,
     MAX_CHUNK_LIST,
     AcquireReply,
     AcquireRequest,
@@ -33,6 +40,7 @@ from protocol.messages import (
     InfoRequest,
     Message,
     MessageError,
+    MsgType,
     ReadDiRequest,
     ReadTracesRequest,
     StatusReply,
@@ -40,9 +48,11 @@ from protocol.messages import (
     TraceMeta,
     decode_message,
 )
+from protocol.versions import HELLO_VERSION, OLDEST_VERSION, PROTOCOL_VERSION, SUPPORTED_VERSIONS
 from retry_timing.backoff import Backoff
 
 __all__ = [
+    "CapabilityMissing",
     "DiTransfer",
     "NodeClient",
     "NodeClientError",
@@ -78,6 +88,10 @@ class NodeError(NodeClientError):
         super().__init__(f"node error {name} on request 0x{request_type:02X}: {detail}")
 
 
+class CapabilityMissing(NodeClientError):
+    """The command needs a capability the node's INFO does not announce; nothing was sent."""
+
+
 class NodeRebooted(NodeClientError):
     """The node's boot id changed during a transfer: its RAM (measurements, DI maps) is gone."""
 
@@ -103,6 +117,12 @@ class TraceTransfer:
     adc_bits: int
     transfer_crc32c: int
     chunks_rerequested: int
+    # What the record was taken with, as the node states it (protocol version 2; None from version 1).
+    excitation_hz: float | None = None
+    cycles: int | None = None
+    averaging: int | None = None
+    record_channels: tuple[int, ...] | None = None
+    record_n_samples: int | None = None
 
     @property
     def volts(self) -> np.ndarray:
@@ -169,8 +189,10 @@ class NodeClient:
         self._seq = 0
         self._averaging = 1
         self._info: InfoReply | None = None
+        self.version: int | None = None  # negotiated by info()
         self.frame_errors = 0
         self.retried = 0
+        self.busy_replies = 0
         self._decoder = FrameDecoder()
         self._transport = SerialTransport(url, baudrate=baudrate, exclusive=exclusive)
 
@@ -191,14 +213,22 @@ class NodeClient:
 
     # ------------------------------------------------------------------ commands
     def info(self) -> InfoReply:
-        """HELLO/INFO: identity, capabilities and geometry; raises ProtocolMismatch if unsupported."""
-        reply = self._command(InfoRequest(PROTOCOL_VERSION, PROTOCOL_VERSION), InfoReply)
-        if reply.protocol_version != PROTOCOL_VERSION:
-            raise ProtocolMismatch(f"node speaks protocol {reply.protocol_version}, host {PROTOCOL_VERSION}")
+        """HELLO/INFO: identity, capabilities and geometry, and the version this session speaks
+        (the newest both sides speak); raises ProtocolMismatch if they share none."""
+        self.version = None
+        self._info = None
+        reply = self._command(InfoRequest(OLDEST_VERSION, PROTOCOL_VERSION), InfoReply)
         self._info = reply
+        self.version = reply.protocol_version
         return reply
 
+    @property
+    def known_info(self) -> InfoReply | None:
+        """The last INFO reply of this session (None before the first)."""
+        return self._info
+
     def status(self) -> StatusReply:
+        self._known_info()
         return self._command(StatusRequest(), StatusReply)
 
     def configure(
@@ -212,7 +242,12 @@ class NodeClient:
         return reply
 
     def acquire(self, baseline: bool, timeout_s: float | None = None) -> AcquireReply:
-        """Fire and record (averaged); a retry returns the cached reply, never a second acquisition."""
+        """Fire and record (averaged); a retry returns the cached reply, never a second acquisition.
+        ``baseline`` also fills the node's baseline slot (capability BASELINE_SLOT)."""
+        if baseline:
+            self._require(CAP_BASELINE_SLOT)
+        else:
+            self._known_info()
         wait_s = timeout_s if timeout_s is not None else self.timeout_s + self._averaging * self.shot_period_s
         return self._command(AcquireRequest(int(baseline)), AcquireReply, timeout_s=wait_s)
 
@@ -221,6 +256,7 @@ class NodeClient:
         timeout_s: float | None = None,
     ) -> ComputeDiReply:
         """On-board DI map of ``current_id`` against ``baseline_id`` (0: the stored baseline)."""
+        self._require(CAP_ON_BOARD_DI)
         spec = (grid.axial_start_mm, grid.axial_step_mm, grid.axial_count,
                 grid.angle_start_deg, grid.angle_step_deg, grid.angle_count) if grid else (0.0, 0.0, 0, 0.0, 0.0, 0)
         request = ComputeDiRequest(current_id, baseline_id, decimation, *spec)
@@ -245,10 +281,14 @@ class NodeClient:
             meta.measurement_id, meta.boot_id, bool(meta.is_baseline), _channels_of(meta.channel_mask),
             meta.start, codes.reshape(n_ch, meta.count), meta.volts_per_code, meta.fs_hz, meta.t0_s,
             meta.temperature_c, meta.adc_bits, meta.transfer_crc32c, rerequested,
+            excitation_hz=meta.excitation_hz, cycles=meta.cycles, averaging=meta.averaging,
+            record_channels=None if meta.record_channel_mask is None else _channels_of(meta.record_channel_mask),
+            record_n_samples=meta.record_n_samples,
         )
 
     def read_di(self, di_id: int) -> DiTransfer:
         """Pixels float32 [n_axial, n_angle] of an on-board DI map, CRC-32C verified."""
+        self._require(CAP_ON_BOARD_DI)
         meta, data, rerequested = self._bulk(lambda chunks: ReadDiRequest(di_id, chunks), DiMeta)
         pixels = np.frombuffer(data, dtype="<f4").astype(np.float32)
         if pixels.size != meta.n_axial * meta.n_angle:
@@ -262,13 +302,20 @@ class NodeClient:
     def _known_info(self) -> InfoReply:
         return self._info if self._info is not None else self.info()
 
+    def _require(self, capability: int) -> None:
+        info = self._known_info()
+        if not info.has(capability):
+            raise CapabilityMissing(f"node {info.node_id} lacks capability {CAPABILITY_NAMES[capability]}")
+
     def _next_request_id(self) -> int:
         self._request_id = self._request_id % (2**32 - 1) + 1  # never 0
         return self._request_id
 
     def _send(self, message: Message, request_id: int) -> None:
         self._seq = (self._seq + 1) & 0xFFFF
-        self._transport.write(encode_frame(Frame(message.TYPE, request_id, message.encode(), seq=self._seq)))
+        version = HELLO_VERSION if self.version is None else self.version  # INFO goes out in version 1
+        frame = Frame(message.TYPE, request_id, message.encode(version), seq=self._seq, version=version)
+        self._transport.write(encode_frame(frame))
 
     def _backoff(self, attempt: int) -> None:
         time.sleep(self.retry_backoff.delay_s(attempt, self._rng))
@@ -286,52 +333,86 @@ class NodeClient:
                     continue
                 if not item.is_reply:
                     continue  # our own request echoed (loop://) or another host's
-                if item.version != PROTOCOL_VERSION:
-                    raise ProtocolMismatch(f"node frame has protocol version {item.version}, host {PROTOCOL_VERSION}")
                 if item.request_id != request_id:
                     continue  # a late reply to an earlier attempt
-                try:
-                    message = decode_message(item.msg_type, item.payload)
-                except MessageError as exc:
-                    raise ProtocolMismatch(f"CRC-valid reply we cannot parse: {exc}") from exc
+                message = self._decode_reply(item)
                 if isinstance(message, ErrorReply) and message.code == ErrorCode.BAD_VERSION:
-                    raise ProtocolMismatch(f"node refused our protocol version: {message.detail}")
+                    raise ProtocolMismatch(f"node refused protocol version {self.version or HELLO_VERSION}: "
+                                           f"{message.detail}")
                 yield item, message
                 deadline = time.monotonic() + timeout_s
 
-    def _command(self, request: Message, reply_type: type, timeout_s: float | None = None):
-        """Send ``request``; retry with the SAME request id until a reply or the retries run out."""
+    def _decode_reply(self, frame: Frame) -> Message:
+        """A reply in the session's version (ERROR in any: its layout never changes; INFO_REPLY in
+        any the host speaks, the version it announces named in the mismatch otherwise)."""
+        if frame.msg_type == MsgType.ERROR:
+            version = frame.version
+        elif self.version is None and frame.msg_type == MsgType.INFO_REPLY:
+            if frame.version not in SUPPORTED_VERSIONS:
+                try:
+                    announced = InfoReply.announced_version(frame.payload)
+                except MessageError as exc:
+                    raise ProtocolMismatch(f"node answers INFO in protocol version {frame.version}: {exc}") from exc
+                raise ProtocolMismatch(f"node speaks protocol version {announced}, host "
+                                       f"{OLDEST_VERSION}..{PROTOCOL_VERSION}")
+            version = frame.version
+        elif frame.version != self.version:
+            raise ProtocolMismatch(f"node frame has protocol version {frame.version}, session {self.version}")
+        else:
+            version = frame.version
+        try:
+            message = decode_message(frame.msg_type, frame.payload, version)
+        except MessageError as exc:
+            raise ProtocolMismatch(f"CRC-valid reply we cannot parse: {exc}") from exc
+        if isinstance(message, InfoReply) and message.protocol_version != frame.version:
+            raise ProtocolMismatch(f"INFO_REPLY announces version {message.protocol_version} in a version "
+                                   f"{frame.version} frame")
+        return message
+
+    def _attempts(self, request: Message, wait_s: float):
+        """Send ``request`` and yield, per attempt, an iterator over its replies; resend it with the
+        SAME request id (after a backoff) when the caller asks for the next attempt, i.e. after a
+        timeout or an ERROR BUSY, until the retries run out (NodeTimeout)."""
         request_id = self._next_request_id()
-        wait_s = timeout_s if timeout_s is not None else self.timeout_s
+        busy_before = self.busy_replies
         for attempt in range(self.retries + 1):
             if attempt:
                 self.retried += 1
                 self._backoff(attempt)
             self._send(request, request_id)
-            for _frame, message in self._replies(request_id, wait_s):
-                if isinstance(message, ErrorReply):
-                    if message.code == ErrorCode.BUSY:
-                        break  # ask again after the backoff
-                    raise NodeError(message.code, message.detail, message.request_type)
+            yield self._answers(request_id, wait_s)
+        busy = self.busy_replies - busy_before
+        outcome = f"BUSY {busy} times, no reply the other {self.retries + 1 - busy}" if busy else "no reply"
+        raise NodeTimeout(
+            f"{type(request).__name__} to {self.url}: {outcome} in {self.retries + 1} attempts of {wait_s:.2f} s"
+        )
+
+    def _answers(self, request_id: int, wait_s: float):
+        """The replies to one attempt; ends at a timeout or an ERROR BUSY; any other ERROR is a NodeError."""
+        for frame, message in self._replies(request_id, wait_s):
+            if isinstance(message, ErrorReply):
+                if message.code == ErrorCode.BUSY:
+                    self.busy_replies += 1
+                    return  # asked again after the backoff, like a timeout
+                raise NodeError(message.code, message.detail, message.request_type)
+            yield frame, message
+
+    def _command(self, request: Message, reply_type: type, timeout_s: float | None = None):
+        """Send ``request`` until its reply arrives (see ``_attempts``)."""
+        wait_s = timeout_s if timeout_s is not None else self.timeout_s
+        for answers in self._attempts(request, wait_s):
+            for _frame, message in answers:
                 if isinstance(message, reply_type):
                     return message
                 raise ProtocolMismatch(f"expected {reply_type.__name__}, got {type(message).__name__}")
-        raise NodeTimeout(
-            f"{type(request).__name__} to {self.url}: no reply in {self.retries + 1} attempts of {wait_s:.2f} s"
-        )
+        raise AssertionError("unreachable: _attempts ends in NodeTimeout")
 
     def _collect(self, request: Message, meta_type: type, pending: dict[int, BulkChunk]):
-        """One request of a bulk read; returns its *_META (or None on timeout), chunks into ``pending``."""
-        request_id = self._next_request_id()
+        """One request of a bulk read; returns its *_META, chunks into ``pending``. An attempt ends
+        at the LAST frame or when no frame came for ``timeout_s`` (lost chunks are asked for later)."""
         meta = None
-        for attempt in range(self.retries + 1):
-            if attempt:
-                self.retried += 1
-                self._backoff(attempt)
-            self._send(request, request_id)
-            for frame, message in self._replies(request_id, self.timeout_s):
-                if isinstance(message, ErrorReply):
-                    raise NodeError(message.code, message.detail, message.request_type)
+        for answers in self._attempts(request, self.timeout_s):
+            for frame, message in answers:
                 if isinstance(message, meta_type):
                     meta = message
                 elif isinstance(message, BulkChunk):
@@ -342,7 +423,7 @@ class NodeClient:
                     break
             if meta is not None:
                 return meta
-        raise NodeTimeout(f"{type(request).__name__} to {self.url}: no reply in {self.retries + 1} attempts")
+        raise AssertionError("unreachable: _attempts ends in NodeTimeout")
 
     def _bulk(self, make_request, meta_type: type):
         """Read a chunked transfer; re-request only missing chunks; verify the whole-transfer CRC."""
@@ -371,6 +452,10 @@ class NodeClient:
                 except BulkError:
                     self.frame_errors += 1  # a CRC-valid chunk that does not fit: drop and ask again
             missing = assembler.missing()
+            if missing and not self._known_info().has(CAP_CHUNK_RETRANSMIT):
+                wanted = ()  # the node sends whole transfers only: read it all again, keep what arrived
+                rerequested += len(missing)
+                continue
             if not missing:
                 try:
                     return meta, assembler.result(), rerequested

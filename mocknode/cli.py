@@ -45,9 +45,16 @@ def mock_node(
     reconnect_after_s: Annotated[float | None, typer.Option(help="fault: port absent for N s")] = None,
     reboot_probability: Annotated[float | None, typer.Option(help="fault: reboot per bulk frame sent")] = None,
     garbage_on_power_up: Annotated[int | None, typer.Option(help="fault: garbage bytes at boot")] = None,
-    protocol_version: Annotated[int | None, typer.Option(help="fault: announce this protocol version")] = None,
+    reboot_every_s: Annotated[float | None, typer.Option(help="fault: power-cycle every N s, port kept")] = None,
+    busy_probability: Annotated[float | None, typer.Option(help="fault: ERROR BUSY per command")] = None,
+    protocol_version: Annotated[int | None, typer.Option(help="fault: speak only this protocol version")] = None,
+    violation: Annotated[list[str] | None, typer.Option(
+        help="break this requirement of docs/protocol.md on purpose (names: docs/simulator.md; repeatable)")] = None,
 ) -> None:
-    """Serve simulated nodes; prints "<node_id> <port>" for every port it opens (again after a reconnect)."""
+    """Serve simulated nodes; prints "<node_id> <port>" for every port it opens (again after a reconnect).
+
+    SIGUSR1 power-cycles every node (ports stay open); SIGINT/SIGTERM stop.
+    """
     from pydantic import ValidationError
 
     from mocknode.scenario import ScenarioError, default_scenario, load_scenario
@@ -59,7 +66,8 @@ def mock_node(
             "stall_probability": stall_probability, "stall_s": stall_s,
             "disconnect_every_s": disconnect_every_s, "reconnect_after_s": reconnect_after_s,
             "reboot_probability": reboot_probability, "garbage_on_power_up": garbage_on_power_up,
-            "protocol_version": protocol_version,
+            "reboot_every_s": reboot_every_s, "busy_probability": busy_probability,
+            "protocol_version": protocol_version, "violations": violation or None,
         }.items() if value is not None
     }
     try:
@@ -80,6 +88,7 @@ def mock_node(
 
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGUSR1, lambda _signum, _frame: server.power_cycle())
     server.start()
     while not server.stop_event.wait(1.0):
         pass  # the signal handler sets the event; wait() wakes on it

@@ -1,8 +1,11 @@
 """The node's protocol state machine, pure: request frame in, reply frames out.
 
-Implements docs/protocol.md exactly as the firmware should: reply cache by request id,
-a few measurements in bounded RAM plus a baseline slot, chunked bulk replies, and the
-on-board DI map computed on decimated data. Timing and faults belong to ``server.py``.
+Implements docs/protocol.md exactly as the firmware should: version negotiation (it speaks
+versions 1 and 2 and answers each request in the version of its header), the reply cache by
+request id, a few measurements in bounded RAM plus a baseline slot, chunked bulk replies, the
+on-board DI map computed on decimated data, capabilities, BUSY while an acquisition runs. The
+scenario's ``violations`` make it break single requirements on purpose. Timing, line faults
+and reboots belong to ``server.py``.
 """
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -21,10 +24,12 @@ from imaging.dimap import BaselineMismatch, compute_di_map
 from imaging.grid import Grid, GridError
 from imaging.measurement import Measurement, MeasurementError
 from mocknode import physics
+from mocknode.faults import Violation
 from mocknode.scenario import NodeScenario
+from mocknode.violations import StaleCrcFrame, lenient_decode
 from protocol.bulk import n_chunks_for, split_chunks
 from protocol.crc import crc32c
-from protocol.framing import FLAG_CACHED, FLAG_LAST, FLAG_REPLY, MAX_FRAME_BYTES, PROTOCOL_VERSION, Frame
+from protocol.framing import FLAG_CACHED, FLAG_LAST, FLAG_REPLY, MAX_FRAME_BYTES, Frame
 from protocol.messages import (
     CAP_BASELINE_SLOT,
     CAP_CHUNK_RETRANSMIT,
@@ -43,6 +48,7 @@ from protocol.messages import (
     InfoRequest,
     Message,
     MessageError,
+    MsgType,
     ReadDiRequest,
     ReadTracesRequest,
     StatusReply,
@@ -51,17 +57,20 @@ from protocol.messages import (
     UnknownMessageType,
     decode_message,
 )
+from protocol.versions import OLDEST_VERSION, PROTOCOL_VERSION, common_version
 
-FIRMWARE_VERSION = (0, 3, 0)
+FIRMWARE_VERSION = (0, 4, 0)
 CHUNK_BYTES = 2048  # bulk payload per frame: 98 % wire efficiency, 4 KiB frame buffers
 MAX_MEASUREMENTS = 4  # RAM slots, the baseline included (4 x 96 KB of the 512 KB SRAM)
 MAX_DI_MAPS = 2
 MAX_DI_PIXELS = 65536  # float32: 256 KB
-MAX_SAMPLES = 8000  # 800 us at 10 MS/s (paper, section 3.2)
 MAX_CHANNELS = 32  # the channel mask is 32 bits wide
 REPLY_CACHE_SIZE = 16
 SHOT_PERIOD_S = 0.005  # time per averaged shot (pulse repetition), for ACQUIRE's service time
 SUPPLY_V = 5.0  # USB-powered Cmod A7
+CAPABILITY_BITS = {"on_board_di": CAP_ON_BOARD_DI, "baseline_slot": CAP_BASELINE_SLOT,
+                   "chunk_retransmit": CAP_CHUNK_RETRANSMIT}
+_NEVER_BUSY = (MsgType.INFO, MsgType.STATUS)  # answered even while an acquisition runs
 
 
 class NodeSetupError(ValueError):
@@ -82,6 +91,7 @@ class _Stored:
     measurement_id: int
     is_baseline: bool
     channel_mask: int
+    settings: ConfigureReply  # what it was taken with
     acquisition: physics.Acquisition
     measurement: Measurement  # all enabled channels, full rate
 
@@ -107,15 +117,27 @@ class MockNode:
         self._epoch = clock()  # scenario time 0: defects grow and temperature drifts from here
         self._rng = np.random.default_rng(scenario.seed)
         self._boot_rng = random.Random(scenario.seed ^ 0x5EED)
-        self.protocol_version = scenario.faults.protocol_version or PROTOCOL_VERSION
+        self._fault_rng = random.Random(scenario.seed ^ 0xFA17)
+        only = scenario.faults.protocol_version
+        self.version_min, self.version_max = (only, only) if only else (OLDEST_VERSION, PROTOCOL_VERSION)
+        self.capabilities = sum(CAPABILITY_BITS[name] for name in set(scenario.firmware.capabilities))
+        self.violations = frozenset(scenario.faults.violations)
         self.crc_errors = 0
         self.framing_errors = 0
+        self.boot_id = 0
         self.boot()
+
+    @property
+    def protocol_version(self) -> int:
+        """The newest version the node speaks."""
+        return self.version_max
 
     # ------------------------------------------------------------------ power
     def boot(self) -> None:
-        """Power-up (or reboot): every RAM state is lost; a new boot id is drawn."""
-        self.boot_id = self._boot_rng.randrange(1, 2**32)
+        """Power-up (or reboot): every RAM state is lost, a new boot id is drawn, and the
+        power-up settings are in force again."""
+        if not (self.boot_id and Violation.BOOT_ID_STICKY in self.violations):
+            self.boot_id = self._boot_rng.randrange(1, 2**32)
         self._boot_time = self.clock()
         self._seq = 0
         self._next_measurement_id = 1
@@ -123,14 +145,26 @@ class MockNode:
         self._measurements: OrderedDict[int, _Stored] = OrderedDict()
         self._baseline_id = 0
         self._di_maps: OrderedDict[int, _StoredDi] = OrderedDict()
-        self._cache: OrderedDict[int, tuple[int, bytes, list[Frame]]] = OrderedDict()
+        self._cache: OrderedDict[int, tuple[int, int, bytes, list[Frame]]] = OrderedDict()
+        self._busy_until = 0.0
+        self._running: tuple[int, int, int, bytes] | None = None  # the acquisition in progress
+        self._stuck_busy = False
         self.rejected_requests = 0
         self.last_service_s = 0.0
-        acq = self.scenario.acquisition
-        self.config = ConfigureReply(
-            float(self.scenario.excitation.frequency_hz), self.scenario.excitation.cycles, acq.averaging,
-            (1 << len(self.scenario.rings.rx_angles)) - 1, acq.n_samples,
+        self.config = self.power_up_settings()
+
+    def power_up_settings(self) -> ConfigureReply:
+        """The settings in force after a boot: the scenario's ``power_up`` keys, else its own."""
+        scn, up = self.scenario, self.scenario.power_up
+        return ConfigureReply(
+            float(np.float32(up.excitation_hz or scn.excitation.frequency_hz)), up.cycles or scn.excitation.cycles,
+            up.averaging or scn.acquisition.averaging, (1 << len(scn.rings.rx_angles)) - 1,
+            up.n_samples or scn.acquisition.n_samples,
         )
+
+    @property
+    def busy(self) -> bool:
+        return self._stuck_busy or self.clock() < self._busy_until
 
     def stored_codes(self, measurement_id: int) -> np.ndarray | None:
         """A copy of a stored measurement's codes [n_enabled_channels, n] (an oracle for tests)."""
@@ -145,69 +179,140 @@ class MockNode:
             self.framing_errors += 1
 
     # ------------------------------------------------------------------ dispatch
+    def speaks(self, version: int) -> bool:
+        return self.version_min <= version <= self.version_max
+
     def handle(self, request: Frame) -> list[Frame]:
-        """Reply frames for one request frame (empty for frames that are not requests)."""
+        """Reply frames for one request frame (empty for frames that are not requests, and for a
+        resend of the acquisition still running: its reply follows when it is done)."""
         self.last_service_s = 0.0
         if request.is_reply:
             return []
-        if request.version != self.protocol_version:
-            return self._error(request, ErrorCode.BAD_VERSION, f"node speaks version {self.protocol_version}")
+        versioned = self.version_max >= 2  # version 2's rules: INFO always answered, request id 0 refused
+        version = request.version if self.speaks(request.version) else self.version_max
+        if versioned and request.request_id == 0 and Violation.REQUEST_ID_ZERO_RUNS not in self.violations:
+            return self._error(request, ErrorCode.MALFORMED, "request id 0 is reserved", version)
+        if versioned and request.msg_type == MsgType.INFO and Violation.INFO_NEEDS_VERSION not in self.violations:
+            return self._hello(request)
+        if not self.speaks(request.version):
+            if Violation.VERSION_IGNORED in self.violations:
+                version = min(max(request.version, OLDEST_VERSION), PROTOCOL_VERSION)
+            else:
+                return self._error(request, ErrorCode.BAD_VERSION,
+                                   f"node speaks versions {self.version_min}..{self.version_max}", version)
+        busy = self._busy_answer(request, version)
+        if busy is not None:
+            return busy
         cached = self._cache.get(request.request_id)
-        if cached is not None and cached[0] == request.msg_type and cached[1] == request.payload:
-            return [dataclasses.replace(f, flags=f.flags | FLAG_CACHED, seq=self._next_seq()) for f in cached[2]]
+        if cached is not None and cached[:3] == (version, request.msg_type, request.payload) and not (
+            request.msg_type == MsgType.ACQUIRE and Violation.ACQUIRES_TWICE in self.violations
+        ):
+            return [self._replay(f) for f in cached[3]]
         try:
-            message = decode_message(request.msg_type, request.payload)
+            message = self._decode(request, version)
         except UnknownMessageType as exc:
-            return self._error(request, ErrorCode.UNKNOWN_COMMAND, str(exc))
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, str(exc), version)
         except MessageError as exc:
-            return self._error(request, ErrorCode.MALFORMED, str(exc))
+            return self._error(request, ErrorCode.MALFORMED, str(exc), version)
         handler = self._HANDLERS.get(type(message))
         if handler is None:
-            return self._error(request, ErrorCode.UNKNOWN_COMMAND, f"{type(message).__name__} is not a request")
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, f"{type(message).__name__} is not a request",
+                               version)
         try:
             replies = handler(self, message)
+            frames = self._frames(request, replies, version)
         except _Refused as refused:
-            return self._error(request, refused.code, refused.detail)
+            frames = self._error(request, refused.code, refused.detail, version)
         except (physics.PhysicsError, MeasurementError, GridError) as exc:
             # The simulated hardware failed: answer like firmware would, keep serving.
-            return self._error(request, ErrorCode.HARDWARE_FAULT, f"{type(exc).__name__}: {exc}")
-        frames = self._frames(request, replies)
-        if isinstance(message, (ConfigureRequest, AcquireRequest, ComputeDiRequest)):
-            self._cache[request.request_id] = (request.msg_type, request.payload, frames)
+            frames = self._error(request, ErrorCode.HARDWARE_FAULT, f"{type(exc).__name__}: {exc}", version)
+        refused_now = frames[0].msg_type == MsgType.ERROR
+        if isinstance(message, (ConfigureRequest, AcquireRequest, ComputeDiRequest)) and (
+            not refused_now or Violation.CACHES_ERRORS in self.violations
+        ):
+            self._cache[request.request_id] = (version, request.msg_type, request.payload, frames)
+            self._cache.move_to_end(request.request_id)
             while len(self._cache) > REPLY_CACHE_SIZE:
                 self._cache.popitem(last=False)
+        if isinstance(message, AcquireRequest) and not refused_now and self.scenario.firmware.busy_while_acquiring:
+            self._busy_until = self.clock() + self.last_service_s
+            self._running = (version, request.request_id, request.msg_type, request.payload)
         return frames
+
+    def _decode(self, request: Frame, version: int) -> Message:
+        try:
+            return decode_message(request.msg_type, request.payload, version)
+        except UnknownMessageType:
+            raise
+        except MessageError:
+            if Violation.LENIENT_LENGTHS not in self.violations:
+                raise
+            return lenient_decode(request.msg_type, request.payload, version)
+
+    def _busy_answer(self, request: Frame, version: int) -> list[Frame] | None:
+        """ERROR BUSY (or nothing, for a resend of the running acquisition) while the node works."""
+        if request.msg_type in _NEVER_BUSY:
+            return None
+        if self._stuck_busy:
+            return self._error(request, ErrorCode.BUSY, "busy", version)
+        if self.clock() < self._busy_until:
+            if self._running == (version, request.request_id, request.msg_type, request.payload):
+                return []
+            self._stuck_busy = Violation.BUSY_FOREVER in self.violations
+            return self._error(request, ErrorCode.BUSY, "acquisition in progress", version)
+        p = self.scenario.faults.busy_probability
+        if p and self._fault_rng.random() < p:
+            return self._error(request, ErrorCode.BUSY, "bus in use", version)
+        return None
+
+    def _replay(self, frame: Frame) -> Frame:
+        seq = self._next_seq()
+        if Violation.CACHED_CRC_STALE in self.violations:
+            return StaleCrcFrame(frame.msg_type, frame.request_id, frame.payload, frame.flags | FLAG_CACHED, seq,
+                                 frame.version, original_flags=frame.flags, original_seq=frame.seq)
+        return dataclasses.replace(frame, flags=frame.flags | FLAG_CACHED, seq=seq)
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF
         return self._seq
 
-    def _frames(self, request: Frame, replies: list[Message]) -> list[Frame]:
+    def _frames(self, request: Frame, replies: list[Message], version: int) -> list[Frame]:
+        layout = min(version, PROTOCOL_VERSION)  # a node of a future version: our newest layouts
+        encoded = [message.encode(layout) for message in replies]  # a field that does not fit refuses them all
         frames = []
-        for i, message in enumerate(replies):
+        for i, (message, payload) in enumerate(zip(replies, encoded, strict=True)):
             flags = FLAG_REPLY | (FLAG_LAST if i == len(replies) - 1 else 0)
-            frames.append(Frame(message.TYPE, request.request_id, message.encode(), flags,
-                                self._next_seq(), self.protocol_version))
+            frames.append(Frame(message.TYPE, request.request_id, payload, flags, self._next_seq(), version))
         return frames
 
-    def _error(self, request: Frame, code: ErrorCode, detail: str) -> list[Frame]:
+    def _error(self, request: Frame, code: ErrorCode, detail: str, version: int) -> list[Frame]:
         self.rejected_requests += 1
-        return self._frames(request, [ErrorReply(int(code), request.msg_type & 0xFF, detail)])
+        return self._frames(request, [ErrorReply(int(code), request.msg_type & 0xFF, detail)], version)
+
+    def _hello(self, request: Frame) -> list[Frame]:
+        """INFO in whatever header version: answered in the newest version both sides speak."""
+        try:
+            hello = InfoRequest.decode(request.payload, OLDEST_VERSION)  # its layout never changes
+        except MessageError as exc:
+            return self._error(request, ErrorCode.MALFORMED, str(exc), self.version_max)
+        version = common_version(hello.host_version_min, hello.host_version_max, self.version_min, self.version_max)
+        version = version or self.version_max  # no common version: the host learns ours and stops
+        return self._frames(request, self._info(version), version)
 
     # ------------------------------------------------------------------ commands
-    def _info(self, message: InfoRequest) -> list[Message]:
+    def _info(self, version: int) -> list[Message]:
         scn = self.scenario
         tx, rx = tuple(scn.rings.tx_angles), tuple(scn.rings.rx_angles)
         return [InfoReply(
-            scn.node_id, *FIRMWARE_VERSION, self.protocol_version,
-            CAP_ON_BOARD_DI | CAP_BASELINE_SLOT | CAP_CHUNK_RETRANSMIT, self.boot_id, MAX_FRAME_BYTES,
+            scn.node_id, *FIRMWARE_VERSION, version, self.capabilities, self.boot_id, MAX_FRAME_BYTES,
             CHUNK_BYTES, len(rx), scn.acquisition.adc_bits, scn.acquisition.decimation, MAX_MEASUREMENTS,
-            float(scn.acquisition.fs_hz), self._max_samples(), float(scn.rings.tx_rx_distance_mm),
+            float(scn.acquisition.fs_hz), scn.max_samples, float(scn.rings.tx_rx_distance_mm),
             float(scn.pipe.outer_circumference_mm), float(scn.pipe.velocity_m_s), len(tx), len(rx), tx, rx,
+            self.version_min, min(self.version_max, 255),
         )]
 
-    def _max_samples(self) -> int:
-        return max(MAX_SAMPLES, self.scenario.acquisition.n_samples)
+    def _info_request(self, message: InfoRequest) -> list[Message]:
+        return self._info(self.version_max)  # a version-1 node: INFO in its own version
 
     def _status(self, message: StatusRequest) -> list[Message]:
         last = next(reversed(self._measurements.values()), None)
@@ -215,7 +320,7 @@ class MockNode:
         return [StatusReply(
             int(self.clock() - self._boot_time), self.boot_id, float(temperature), SUPPLY_V,
             self.crc_errors, self.framing_errors, self.rejected_requests, self._baseline_id,
-            len(self._measurements), 0,
+            len(self._measurements), int(self.busy),
         )]
 
     def _configure(self, message: ConfigureRequest) -> list[Message]:
@@ -224,14 +329,17 @@ class MockNode:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "excitation_hz outside 1 kHz..1 MHz")
         if not 1 <= message.cycles <= 50:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "cycles outside 1..50")
-        if not 1 <= message.averaging <= 10000:
+        averaging, n_samples, max_samples = message.averaging, message.n_samples, self.scenario.max_samples
+        if Violation.CLAMPS_SETTINGS in self.violations:
+            averaging, n_samples = min(averaging, 10000), min(n_samples, max_samples)
+        if not 1 <= averaging <= 10000:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "averaging outside 1..10000")
         if message.channel_mask == 0 or message.channel_mask >> n_rx:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask must select channels of 0..{n_rx - 1}")
-        if not 2 <= message.n_samples <= self._max_samples():
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"n_samples outside 2..{self._max_samples()}")
-        self.config = ConfigureReply(float(np.float32(message.excitation_hz)), message.cycles, message.averaging,
-                                     message.channel_mask, message.n_samples)
+        if not 2 <= n_samples <= max_samples:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"n_samples outside 2..{max_samples}")
+        self.config = ConfigureReply(float(np.float32(message.excitation_hz)), message.cycles, averaging,
+                                     message.channel_mask, n_samples)
         return [self.config]
 
     def _configured_scenario(self) -> NodeScenario:
@@ -242,6 +350,8 @@ class MockNode:
         })
 
     def _acquire(self, message: AcquireRequest) -> list[Message]:
+        if message.as_baseline and not self.capabilities & CAP_BASELINE_SLOT:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "no baseline slot (capability BASELINE_SLOT absent)")
         scn = self._configured_scenario()
         acquisition = physics.acquire(scn, self.clock() - self._epoch, self._rng)
         rows = [i for i in range(len(scn.rings.rx_angles)) if self.config.channel_mask >> i & 1]
@@ -251,7 +361,8 @@ class MockNode:
             acquisition = dataclasses.replace(acquisition, codes=np.ascontiguousarray(acquisition.codes[rows]))
         measurement_id = self._next_measurement_id
         self._next_measurement_id += 1
-        stored = _Stored(measurement_id, bool(message.as_baseline), self.config.channel_mask, acquisition, full)
+        stored = _Stored(measurement_id, bool(message.as_baseline), self.config.channel_mask, self.config,
+                         acquisition, full)
         if message.as_baseline:
             self._measurements.pop(self._baseline_id, None)
             self._baseline_id = measurement_id
@@ -260,9 +371,10 @@ class MockNode:
             oldest = next(k for k in self._measurements if k != self._baseline_id)
             del self._measurements[oldest]
         self.last_service_s = self.config.averaging * SHOT_PERIOD_S
+        cfg = self.config
         return [AcquireReply(measurement_id, int(stored.is_baseline), float(acquisition.temperature_c),
-                             self.config.channel_mask, self.config.n_samples,
-                             int(self.clock() - self._boot_time), self.boot_id)]
+                             cfg.channel_mask, cfg.n_samples, int(self.clock() - self._boot_time), self.boot_id,
+                             cfg.excitation_hz, cfg.cycles, cfg.averaging, float(acquisition.fs_hz))]
 
     def _stored(self, measurement_id: int) -> _Stored:
         stored = self._measurements.get(measurement_id)
@@ -287,12 +399,17 @@ class MockNode:
             count, float(stored.acquisition.fs_hz), float(stored.acquisition.t0_s),
             float(stored.acquisition.volts_per_code), float(stored.acquisition.temperature_c),
             self.scenario.acquisition.adc_bits, len(data), CHUNK_BYTES, n_chunks_for(len(data), CHUNK_BYTES),
-            crc32c(data),
+            crc32c(data), stored.settings.excitation_hz, stored.settings.cycles, stored.settings.averaging,
+            stored.channel_mask, n,
         )
         return [meta, *self._chunks(data, message.chunks)]
 
     def _chunks(self, data: bytes, wanted: tuple[int, ...]) -> list[BulkChunk]:
         pieces = split_chunks(data, CHUNK_BYTES)
+        if wanted and not self.capabilities & CAP_CHUNK_RETRANSMIT:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, "no chunk lists (capability CHUNK_RETRANSMIT absent)")
+        if Violation.IGNORES_CHUNK_LIST in self.violations:
+            wanted = ()
         indices = sorted(set(wanted)) if wanted else range(len(pieces))
         if any(i >= len(pieces) for i in indices):
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"chunk index beyond {len(pieces)} chunks")
@@ -300,7 +417,9 @@ class MockNode:
 
     def _decimated(self, stored: _Stored, factor: int) -> Measurement:
         full = stored.measurement
-        codes = physics.decimate_codes(stored.acquisition.codes, factor)
+        method: Literal["subsample", "boxcar"] = (
+            "boxcar" if Violation.DI_BOXCAR_DECIMATION in self.violations else "subsample")
+        codes = physics.decimate_codes(stored.acquisition.codes, factor, method=method)
         traces = np.asarray(codes, dtype=np.float64) * stored.acquisition.volts_per_code
         return dataclasses.replace(full, traces=traces, fs_hz=full.fs_hz / factor)
 
@@ -316,7 +435,12 @@ class MockNode:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid has more than {MAX_DI_PIXELS} pixels")
         return grid
 
+    def _require_di(self) -> None:
+        if not self.capabilities & CAP_ON_BOARD_DI:
+            raise _Refused(ErrorCode.UNKNOWN_COMMAND, "no on-board DI (capability ON_BOARD_DI absent)")
+
     def _compute_di(self, message: ComputeDiRequest) -> list[Message]:
+        self._require_di()
         baseline_id = message.baseline_id or self._baseline_id
         if baseline_id == 0:
             raise _Refused(ErrorCode.NO_BASELINE, "no baseline stored")
@@ -342,6 +466,7 @@ class MockNode:
         return [reply]
 
     def _read_di(self, message: ReadDiRequest) -> list[Message]:
+        self._require_di()
         stored = self._di_maps.get(message.di_id)
         if stored is None:
             raise _Refused(ErrorCode.NO_SUCH_DI, f"DI map {message.di_id} is not in RAM")
@@ -355,7 +480,7 @@ class MockNode:
         return [meta, *self._chunks(data, message.chunks)]
 
     _HANDLERS: ClassVar[dict[type, Callable]] = {
-        InfoRequest: _info,
+        InfoRequest: _info_request,
         StatusRequest: _status,
         ConfigureRequest: _configure,
         AcquireRequest: _acquire,

@@ -283,6 +283,35 @@ class ReceiverFaultSpec(_Strict):
         return self.from_s <= elapsed_s and (self.until_s is None or elapsed_s < self.until_s)
 
 
+Capability = Literal["on_board_di", "baseline_slot", "chunk_retransmit"]
+ALL_CAPABILITIES: tuple[Capability, ...] = ("on_board_di", "baseline_slot", "chunk_retransmit")
+
+
+class FirmwareSpec(_Strict):
+    """What the node's firmware implements (INFO ``capabilities``, ``max_samples``) and how it
+    behaves while it works; docs/protocol.md says what a node answers for what it lacks."""
+
+    capabilities: list[Capability] = Field(
+        default_factory=lambda: list(ALL_CAPABILITIES),
+        description="INFO capability bits announced and honoured",
+    )
+    max_samples: int = Field(8000, ge=2, le=1_000_000, description="longest record CONFIGURE accepts (RAM)")
+    busy_while_acquiring: bool = Field(
+        False, description="an ACQUIRE takes averaging x shot period, during which commands other than INFO and "
+        "STATUS are answered ERROR BUSY (else they wait behind it)"
+    )
+
+
+class PowerUpSpec(_Strict):
+    """The settings in force after a (re)boot until the next CONFIGURE; unset keys take the
+    scenario's ``excitation`` and ``acquisition`` values (what a gateway usually configures)."""
+
+    excitation_hz: float | None = Field(None, ge=1e3, le=1e6)
+    cycles: int | None = Field(None, ge=1, le=50)
+    averaging: int | None = Field(None, ge=1, le=10_000)
+    n_samples: int | None = Field(None, ge=2, le=1_000_000)
+
+
 class NodeScenario(_Strict):
     """Everything needed to simulate one node's acquisitions over elapsed time."""
 
@@ -297,6 +326,13 @@ class NodeScenario(_Strict):
     faults: FaultSpec = FaultSpec()
     modes: ModesSpec = ModesSpec()
     receiver_faults: list[ReceiverFaultSpec] = Field(default_factory=list, max_length=64)
+    firmware: FirmwareSpec = FirmwareSpec()
+    power_up: PowerUpSpec = PowerUpSpec()
+
+    @property
+    def max_samples(self) -> int:
+        """The longest record the node accepts: the firmware's limit, never below its own defaults."""
+        return max(self.firmware.max_samples, self.acquisition.n_samples, self.power_up.n_samples or 0)
 
     @model_validator(mode="after")
     def _geometry_fits(self) -> NodeScenario:
@@ -445,6 +481,7 @@ __all__ = [
     "AcquisitionSpec",
     "DefectSpec",
     "ExcitationSpec",
+    "FirmwareSpec",
     "GrowthSpec",
     "MassSize",
     "ModeConversion",
@@ -453,6 +490,7 @@ __all__ = [
     "NodeScenario",
     "NotchSize",
     "PipeSpec",
+    "PowerUpSpec",
     "RingSpec",
     "Scenario",
     "ScenarioError",

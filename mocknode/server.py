@@ -4,13 +4,17 @@ Each node runs in its own thread: bytes in -> FrameDecoder -> MockNode.handle ->
 -> paced write. A pseudo-terminal behaves like the node's USB-UART: the gateway opens the
 printed /dev/pts/N (or the stable ``link_dir/<node_id>`` symlink). A disconnect closes the
 pty (the gateway sees PortVanished) and, ``reconnect_after_s`` later, opens a NEW one; the
-node reboots then, as a USB-powered board does.
+node reboots then, as a USB-powered board does. A power cycle (``reboot_every_s``, or
+:meth:`MockNodeServer.power_cycle`, SIGUSR1 to ``pipesentry mock-node``) reboots the node
+with its port left open, as a brown-out of a board whose USB-UART has its own supply does.
 
 Everything that happens in the node's time runs on its injectable ``clock`` (seconds,
 monotonic): the scenario (defects appearing, temperature drifting), the fault schedule
 (disconnects, reconnects, stalls) and the time an averaged ACQUIRE takes. A test passes a
 clock it advances itself instead of sleeping. Only the line's byte rate (``pace``) is real
-time: it is what the gateway's serial timeouts see.
+time: it is what the gateway's serial timeouts see. A firmware that is BUSY while it acquires
+(``firmware.busy_while_acquiring``) keeps reading requests during the acquisition and sends
+its reply when the acquisition's time has passed on that clock.
 """
 from __future__ import annotations
 
@@ -28,9 +32,12 @@ from typing import Literal
 
 import numpy as np
 
+from mocknode.faults import Violation
 from mocknode.node import MockNode
 from mocknode.scenario import NodeScenario
-from protocol.framing import FrameCrcError, FrameDecoder, FrameError, encode_frame
+from mocknode.violations import wire_bytes
+from protocol.cobs import CobsError, cobs_decode
+from protocol.framing import HEADER, HEADER_BYTES, Frame, FrameCrcError, FrameDecoder, FrameError
 from protocol.messages import MsgType
 
 _POLL_S = 0.05
@@ -165,6 +172,8 @@ class NodeRunner(threading.Thread):
         self.reboots = 0
         self._port: _PtyPort | _TcpPort | None = None
         self._line_free_at = 0.0
+        self._power_cycle = threading.Event()
+        self._deferred: tuple[float, list[Frame]] | None = None  # replies of an acquisition still running
         self._open_port()
 
     # ------------------------------------------------------------------ ports
@@ -196,37 +205,53 @@ class NodeRunner(threading.Thread):
         with self._changed:
             return self._changed.wait_for(lambda: self.generation >= generation, timeout_s)
 
+    def power_cycle(self) -> None:
+        """Reboot the node between requests, its port staying open (thread-safe)."""
+        self._power_cycle.set()
+
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
         try:
             self._power_up_garbage()
-            next_disconnect = self._next_disconnect_at()
-            decoder = FrameDecoder()
+            next_disconnect = self._next_at(self.faults.disconnect_every_s)
+            next_reboot = self._next_at(self.faults.reboot_every_s)
+            decoder = self._decoder()
             while not self.stop_event.is_set():
                 if next_disconnect is not None and self.clock() >= next_disconnect:
                     self._disconnect()
-                    decoder = FrameDecoder()
-                    next_disconnect = self._next_disconnect_at()
+                    decoder = self._decoder()
+                    next_disconnect = self._next_at(self.faults.disconnect_every_s)
                     continue
+                if self._power_cycle.is_set() or (next_reboot is not None and self.clock() >= next_reboot):
+                    self._power_cycle.clear()
+                    self._reboot()
+                    decoder = self._decoder()  # the receive buffer is RAM too
+                    next_reboot = self._next_at(self.faults.reboot_every_s)
                 port = self._port
                 if port is None:  # closed under us (stop or disconnect fault)
                     break
-                ready, _, _ = select.select([port], [], [], _POLL_S)
+                ready, _, _ = select.select([port], [], [], self._send_due_replies())
                 if not ready:
                     continue
                 for item in decoder.feed(port.read()):
                     if isinstance(item, FrameError):
                         self.node.note_frame_error(isinstance(item, FrameCrcError))
+                        self._answer_corrupt(item)
                         continue
                     if self._stalls():
                         continue
+                    self._send_due_replies()
                     self._answer(item)
         finally:
             self._close_port()
 
-    def _next_disconnect_at(self) -> float | None:
-        every = self.faults.disconnect_every_s
-        return self.clock() + every if every > 0 else None
+    def _decoder(self) -> FrameDecoder:
+        if Violation.ACCEPTS_OVERSIZED in self.node.violations:
+            return FrameDecoder(max_encoded_bytes=1 << 20, max_frame_bytes=1 << 20)
+        return FrameDecoder()
+
+    def _next_at(self, every_s: float) -> float | None:
+        return self.clock() + every_s if every_s > 0 else None
 
     def _wait_node_s(self, seconds: float) -> bool:
         """Let ``seconds`` of the node's clock pass (True if the server is stopped meanwhile)."""
@@ -242,18 +267,54 @@ class NodeRunner(threading.Thread):
             return True
         return False
 
-    def _answer(self, request) -> None:
+    def _answer(self, request: Frame) -> None:
         replies = self.node.handle(request)
-        if self.pace and self.node.last_service_s > 0:
-            self._wait_node_s(self.node.last_service_s)  # ACQUIRE averaging takes the node's time
+        service_s = self.node.last_service_s
+        if service_s > 0 and self.node.scenario.firmware.busy_while_acquiring:
+            self._flush_deferred()
+            self._deferred = (self.clock() + service_s, replies)  # other requests get BUSY meanwhile
+            return
+        if self.pace and service_s > 0:
+            self._wait_node_s(service_s)  # ACQUIRE averaging takes the node's time; requests wait behind it
+        self._send_replies(replies)
+
+    def _send_replies(self, replies: list[Frame]) -> None:
         for frame in replies:
             if frame.msg_type == MsgType.BULK_CHUNK and self._rng.random() < self.faults.reboot_probability:
                 self._reboot()
                 return
-            self._send(encode_frame(frame))
+            self._send(wire_bytes(frame))
+
+    def _send_due_replies(self) -> float:
+        """Send the deferred replies once their acquisition is done; the time to wait for input."""
+        if self._deferred is None:
+            return _POLL_S
+        left_s = self._deferred[0] - self.clock()
+        if left_s > 0:
+            return min(_POLL_S, left_s)
+        self._flush_deferred()
+        return _POLL_S
+
+    def _flush_deferred(self) -> None:
+        deferred, self._deferred = self._deferred, None
+        if deferred is not None:
+            self._send_replies(deferred[1])
+
+    def _answer_corrupt(self, error: FrameError) -> None:
+        """Violation answers_corrupt_frames: reply to a frame whose CRC failed, trusting its header."""
+        if not isinstance(error, FrameCrcError) or Violation.ANSWERS_CORRUPT_FRAMES not in self.node.violations:
+            return
+        try:
+            body = cobs_decode(error.raw)
+        except CobsError:
+            return
+        version, msg_type, flags, _, seq, request_id = HEADER.unpack_from(body)
+        request = Frame(msg_type, request_id, body[HEADER_BYTES:-4], flags, seq, version)
+        self._send_replies(self.node.handle(request))
 
     def _reboot(self) -> None:
         self.reboots += 1
+        self._deferred = None  # an acquisition's reply dies with the RAM
         self.node.boot()
         self._power_up_garbage()
 
@@ -267,6 +328,7 @@ class NodeRunner(threading.Thread):
         if self._wait_node_s(self.faults.reconnect_after_s):
             return
         self.node.boot()  # USB-powered: unplugging is a power cycle
+        self._deferred = None
         self.reboots += 1
         self._open_port()
         self._power_up_garbage()
@@ -335,6 +397,11 @@ class MockNodeServer:
     @property
     def urls(self) -> dict[str, str]:
         return {node_id: runner.url for node_id, runner in self.runners.items()}
+
+    def power_cycle(self) -> None:
+        """Reboot every node (ports stay open); each comes back with its power-up settings."""
+        for runner in self.runners.values():
+            runner.power_cycle()
 
     def start(self) -> MockNodeServer:
         for runner in self.runners.values():

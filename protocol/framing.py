@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 from protocol.cobs import CobsError, cobs_decode, cobs_encode, cobs_max_encoded_len
 from protocol.crc import crc32c
+from protocol.versions import PROTOCOL_VERSION
 
-PROTOCOL_VERSION = 1
 DELIMITER = 0x00
 
 # version u8, msg_type u8, flags u8, reserved u8, seq u16, request_id u32
@@ -28,7 +28,13 @@ FLAG_LAST = 0x04  # last frame of a multi-frame reply
 
 
 class FrameError(Exception):
-    """A frame on the wire could not be accepted; the decoder reports it and goes on."""
+    """A frame on the wire could not be accepted; the decoder reports it and goes on.
+
+    ``raw`` holds the bytes found between the two delimiters (at most the first
+    MAX_ENCODED_BYTES of an over-long run), for diagnostics.
+    """
+
+    raw: bytes = b""
 
 
 class FrameCobsError(FrameError):
@@ -76,20 +82,26 @@ def encode_frame(frame: Frame) -> bytes:
     return b"\x00" + cobs_encode(body) + b"\x00"
 
 
-def decode_frame_body(block: bytes) -> Frame:
+def _error(cls: type[FrameError], message: str, raw: bytes) -> FrameError:
+    error = cls(message)
+    error.raw = raw
+    return error
+
+
+def decode_frame_body(block: bytes, max_frame_bytes: int = MAX_FRAME_BYTES) -> Frame:
     """Decode the bytes between two delimiters; raises a :class:`FrameError` subclass."""
     try:
         body = cobs_decode(block)
     except CobsError as exc:
-        raise FrameCobsError(str(exc)) from exc
+        raise _error(FrameCobsError, str(exc), bytes(block)) from exc
     if len(body) < HEADER_BYTES + CRC_BYTES:
-        raise FrameTooShort(f"{len(body)} bytes is shorter than header + CRC")
-    if len(body) > MAX_FRAME_BYTES:
-        raise FrameTooLong(f"{len(body)} bytes exceeds MAX_FRAME_BYTES={MAX_FRAME_BYTES}")
+        raise _error(FrameTooShort, f"{len(body)} bytes is shorter than header + CRC", bytes(block))
+    if len(body) > max_frame_bytes:
+        raise _error(FrameTooLong, f"{len(body)} bytes exceeds MAX_FRAME_BYTES={max_frame_bytes}", bytes(block))
     (received,) = struct.unpack_from("<I", body, len(body) - CRC_BYTES)
     computed = crc32c(body[:-CRC_BYTES])
     if received != computed:
-        raise FrameCrcError(f"CRC-32C 0x{received:08X} != computed 0x{computed:08X}")
+        raise _error(FrameCrcError, f"CRC-32C 0x{received:08X} != computed 0x{computed:08X}", bytes(block))
     version, msg_type, flags, _reserved, seq, request_id = HEADER.unpack_from(body)
     return Frame(msg_type=msg_type, request_id=request_id, payload=body[HEADER_BYTES:-CRC_BYTES],
                  flags=flags, seq=seq, version=version)
@@ -103,8 +115,9 @@ class FrameDecoder:
     fill and are ignored, which is how a receiver resynchronises after garbage.
     """
 
-    def __init__(self, max_encoded_bytes: int = MAX_ENCODED_BYTES) -> None:
+    def __init__(self, max_encoded_bytes: int = MAX_ENCODED_BYTES, max_frame_bytes: int = MAX_FRAME_BYTES) -> None:
         self._max = max_encoded_bytes
+        self._max_frame = max_frame_bytes
         self._buffer = bytearray()
         self._discarding = False
         self.frames_ok = 0
@@ -121,10 +134,11 @@ class FrameDecoder:
             if not self._discarding:
                 self._buffer += piece
                 if len(self._buffer) > self._max:
+                    out.append(_error(FrameTooLong, f"no delimiter within {self._max} bytes; discarded",
+                                      bytes(self._buffer[: self._max])))
                     self._buffer.clear()
                     self._discarding = True
                     self.frames_bad += 1
-                    out.append(FrameTooLong(f"no delimiter within {self._max} bytes; discarded"))
             if cut < 0:
                 break
             if self._discarding:
@@ -134,7 +148,7 @@ class FrameDecoder:
                 block = bytes(self._buffer)
                 self._buffer.clear()
                 try:
-                    out.append(decode_frame_body(block))
+                    out.append(decode_frame_body(block, self._max_frame))
                     self.frames_ok += 1
                 except FrameError as exc:
                     self.frames_bad += 1

@@ -3,14 +3,23 @@
 Messages know fields only. Requests have types 0x01-0x0F, their replies ``type | 0x80``;
 bulk data travels in :class:`BulkChunk` frames (0x90); any request may be answered by
 :class:`ErrorReply` (0xFF). See docs/protocol.md for the field tables.
+
+Layouts are versioned: version 2 appends fields to three version-1 messages (INFO_REPLY,
+ACQUIRE_REPLY, TRACE_META) and changes nothing else, so ``encode(version)`` and
+``decode(payload, version)`` differ only in those tails. Fields a version-1 payload does not
+carry decode as None.
 """
 from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
+import re
 import struct
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
+
+from protocol.versions import PROTOCOL_VERSION
 
 NODE_ID_BYTES = 32
 MAX_ERROR_DETAIL_BYTES = 64
@@ -63,33 +72,58 @@ CAP_BASELINE_SLOT = 0x02
 CAP_CHUNK_RETRANSMIT = 0x04
 
 
+CAPABILITY_NAMES = {CAP_ON_BOARD_DI: "ON_BOARD_DI", CAP_BASELINE_SLOT: "BASELINE_SLOT",
+                    CAP_CHUNK_RETRANSMIT: "CHUNK_RETRANSMIT"}
+ALL_CAPABILITIES = CAP_ON_BOARD_DI | CAP_BASELINE_SLOT | CAP_CHUNK_RETRANSMIT
+
+_FORMAT_TOKEN = re.compile(r"\d*[a-zA-Z?]")
+
+
+@functools.cache
+def _leading_fields(fmt: str, n_fields: int) -> struct.Struct:
+    """The struct of the first ``n_fields`` fields of little-endian format ``fmt``."""
+    return struct.Struct("<" + "".join(_FORMAT_TOKEN.findall(fmt.lstrip("<"))[:n_fields]))
+
+
 @dataclass(frozen=True)
 class Message:
-    """Base: fixed fields packed with ``_STRUCT`` in declaration order, plus an optional tail."""
+    """Base: fixed fields packed with ``_STRUCT`` in declaration order, plus an optional tail.
+
+    ``V1_FIELDS``: how many leading fixed fields the version-1 layout has (None: every version
+    has them all); the others were appended in version 2 and are None in a version-1 message.
+    """
 
     TYPE: ClassVar[int]
     _STRUCT: ClassVar[struct.Struct] = struct.Struct("<")
+    V1_FIELDS: ClassVar[int | None] = None
+
+    @classmethod
+    def layout(cls, version: int = PROTOCOL_VERSION) -> struct.Struct:
+        """The fixed part of this message in ``version``."""
+        if cls.V1_FIELDS is None or version >= 2:
+            return cls._STRUCT
+        return _leading_fields(cls._STRUCT.format, cls.V1_FIELDS)
 
     def _fixed(self) -> tuple:
         return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
 
-    def _tail(self) -> bytes:
+    def _tail(self, version: int) -> bytes:
         return b""
 
-    def encode(self) -> bytes:
-        """Payload bytes; raises :class:`MessageError` if a field does not fit its wire type."""
+    def encode(self, version: int = PROTOCOL_VERSION) -> bytes:
+        """Payload bytes in ``version``; raises :class:`MessageError` if a field does not fit its wire type."""
+        layout = self.layout(version)
+        fixed = self._fixed()[: len(_FORMAT_TOKEN.findall(layout.format.lstrip("<")))]
         try:
-            return self._STRUCT.pack(*self._fixed()) + self._tail()
+            return layout.pack(*fixed) + self._tail(version)
         except struct.error as exc:
-            raise MessageError(f"{type(self).__name__}: {exc}") from exc
+            raise MessageError(f"{type(self).__name__} (version {version}): {exc}") from exc
 
     @classmethod
-    def decode(cls, payload: bytes) -> Message:
-        if len(payload) != cls._STRUCT.size:
-            raise MessageError(
-                f"{cls.__name__} payload is {len(payload)} bytes, expected {cls._STRUCT.size}"
-            )
-        return cls(*cls._STRUCT.unpack(payload))
+    def decode(cls, payload: bytes, version: int = PROTOCOL_VERSION) -> Self:
+        layout = cls.layout(version)
+        _check_tail_len(cls, payload, layout.size)
+        return cls(*layout.unpack(payload))
 
 
 def _check_tail_len(cls: type, payload: bytes, need: int) -> None:
@@ -127,11 +161,11 @@ class _ChunkListRequest(Message):
     def _fixed(self) -> tuple:
         return super()._fixed()[:-1]
 
-    def _tail(self) -> bytes:
+    def _tail(self, version: int) -> bytes:
         return _pack_chunk_list(tuple(self.chunks))
 
     @classmethod
-    def decode(cls, payload: bytes):
+    def decode(cls, payload: bytes, version: int = PROTOCOL_VERSION):
         chunks = _unpack_chunk_list(cls, payload, cls._STRUCT.size)
         fields: tuple[Any, ...] = (*cls._STRUCT.unpack_from(payload), chunks)
         return cls(*fields)
@@ -150,10 +184,17 @@ class InfoRequest(Message):
 
 @dataclass(frozen=True)
 class InfoReply(Message):
-    """Identity, capabilities, acquisition limits and ring geometry of the node."""
+    """Identity, capabilities, acquisition limits and ring geometry of the node.
+
+    Version 2 appends the range of versions the node speaks after the angle lists. The first
+    36 bytes (node_id, firmware, protocol_version) keep their offsets in every version, so a
+    host can name the version of a node it cannot otherwise parse (:meth:`announced_version`).
+    """
 
     TYPE: ClassVar[int] = MsgType.INFO_REPLY
     _STRUCT: ClassVar[struct.Struct] = struct.Struct(f"<{NODE_ID_BYTES}sBBBBIIHHBBBBfIfffBB")
+    _V2_TAIL: ClassVar[struct.Struct] = struct.Struct("<BB")
+    PROTOCOL_VERSION_OFFSET: ClassVar[int] = NODE_ID_BYTES + 3
     node_id: str
     fw_major: int
     fw_minor: int
@@ -176,10 +217,15 @@ class InfoReply(Message):
     n_rx: int
     tx_angles_deg: tuple[float, ...] = ()
     rx_angles_deg: tuple[float, ...] = ()
+    version_min: int | None = None  # version 2: the versions the node speaks
+    version_max: int | None = None
 
     @property
     def firmware_version(self) -> str:
         return f"{self.fw_major}.{self.fw_minor}.{self.fw_patch}"
+
+    def has(self, capability: int) -> bool:
+        return bool(self.capabilities & capability)
 
     def _fixed(self) -> tuple:
         raw = self.node_id.encode("utf-8")
@@ -187,26 +233,42 @@ class InfoReply(Message):
             raise MessageError(f"node_id {self.node_id!r} is longer than {NODE_ID_BYTES} bytes")
         if len(self.tx_angles_deg) != self.n_tx or len(self.rx_angles_deg) != self.n_rx:
             raise MessageError("n_tx/n_rx do not match the angle lists")
-        return (raw,) + super()._fixed()[1:-2]
+        return (raw,) + super()._fixed()[1:-4]
 
-    def _tail(self) -> bytes:
+    def _tail(self, version: int) -> bytes:
         angles = tuple(self.tx_angles_deg) + tuple(self.rx_angles_deg)
-        return struct.pack(f"<{len(angles)}f", *angles)
+        tail = struct.pack(f"<{len(angles)}f", *angles)
+        if version >= 2:
+            try:
+                tail += self._V2_TAIL.pack(self.version_min, self.version_max)
+            except struct.error as exc:
+                raise MessageError(f"InfoReply version range: {exc}") from exc
+        return tail
 
     @classmethod
-    def decode(cls, payload: bytes) -> InfoReply:
+    def announced_version(cls, payload: bytes) -> int:
+        """The ``protocol_version`` of an INFO_REPLY of any version (its offset never changes)."""
+        if len(payload) <= cls.PROTOCOL_VERSION_OFFSET:
+            raise MessageError(f"InfoReply payload is {len(payload)} bytes, too short for its version")
+        return payload[cls.PROTOCOL_VERSION_OFFSET]
+
+    @classmethod
+    def decode(cls, payload: bytes, version: int = PROTOCOL_VERSION) -> InfoReply:
         size = cls._STRUCT.size
         if len(payload) < size:
             raise MessageError(f"InfoReply payload is {len(payload)} bytes, shorter than {size}")
         fixed = cls._STRUCT.unpack_from(payload)
         n_tx, n_rx = fixed[-2], fixed[-1]
-        _check_tail_len(cls, payload, size + 4 * (n_tx + n_rx))
+        angles_end = size + 4 * (n_tx + n_rx)
+        _check_tail_len(cls, payload, angles_end + (cls._V2_TAIL.size if version >= 2 else 0))
         angles = struct.unpack_from(f"<{n_tx + n_rx}f", payload, size)
+        versions = cls._V2_TAIL.unpack_from(payload, angles_end) if version >= 2 else (None, None)
         try:
             node_id = fixed[0].rstrip(b"\x00").decode("utf-8")
         except UnicodeDecodeError as exc:
             raise MessageError(f"node_id is not UTF-8: {exc}") from exc
-        fields: tuple[Any, ...] = (node_id, *fixed[1:], angles[:n_tx], angles[n_tx:])  # the angle lists come last
+        # the angle lists and the version range come after the fixed fields
+        fields: tuple[Any, ...] = (node_id, *fixed[1:], angles[:n_tx], angles[n_tx:], *versions)
         return cls(*fields)
 
 
@@ -269,8 +331,11 @@ class AcquireRequest(Message):
 
 @dataclass(frozen=True)
 class AcquireReply(Message):
+    """The new measurement; version 2 adds the settings it was actually taken with."""
+
     TYPE: ClassVar[int] = MsgType.ACQUIRE_REPLY
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IBfIIII")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IBfIIIIfBHf")
+    V1_FIELDS: ClassVar[int | None] = 7
     measurement_id: int
     is_baseline: int
     temperature_c: float
@@ -278,6 +343,10 @@ class AcquireReply(Message):
     n_samples: int
     uptime_s: int
     boot_id: int
+    excitation_hz: float | None = None  # version 2 from here
+    cycles: int | None = None
+    averaging: int | None = None
+    fs_hz: float | None = None
 
 
 # ---------------------------------------------------------------- READ_TRACES
@@ -296,10 +365,15 @@ class ReadTracesRequest(_ChunkListRequest):
 
 @dataclass(frozen=True)
 class TraceMeta(Message):
-    """First frame of a READ_TRACES reply: what the chunks will hold and their CRC-32C."""
+    """First frame of a READ_TRACES reply: what the chunks will hold and their CRC-32C.
+
+    Version 2 adds what the measurement was taken with: excitation, averaging, and the whole
+    record's channel mask and length (``channel_mask``/``count`` describe only this read).
+    """
 
     TYPE: ClassVar[int] = MsgType.TRACE_META
-    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBIIIffffBIHHI")
+    _STRUCT: ClassVar[struct.Struct] = struct.Struct("<IIBIIIffffBIHHIfBHII")
+    V1_FIELDS: ClassVar[int | None] = 15
     boot_id: int
     measurement_id: int
     is_baseline: int
@@ -315,6 +389,11 @@ class TraceMeta(Message):
     chunk_bytes: int
     n_chunks: int
     transfer_crc32c: int
+    excitation_hz: float | None = None  # version 2 from here
+    cycles: int | None = None
+    averaging: int | None = None
+    record_channel_mask: int | None = None
+    record_n_samples: int | None = None
 
 
 # ---------------------------------------------------------------- COMPUTE_DI / READ_DI
@@ -395,11 +474,11 @@ class BulkChunk(Message):
     def _fixed(self) -> tuple:
         return (self.index, self.n_chunks)
 
-    def _tail(self) -> bytes:
+    def _tail(self, version: int) -> bytes:
         return bytes(self.data)
 
     @classmethod
-    def decode(cls, payload: bytes) -> BulkChunk:
+    def decode(cls, payload: bytes, version: int = PROTOCOL_VERSION) -> BulkChunk:
         if len(payload) < cls._STRUCT.size:
             raise MessageError(f"BulkChunk payload is {len(payload)} bytes, too short")
         index, n_chunks = cls._STRUCT.unpack_from(payload)
@@ -421,11 +500,11 @@ class ErrorReply(Message):
     def _fixed(self) -> tuple:
         return (self.code, self.request_type, 0)
 
-    def _tail(self) -> bytes:
+    def _tail(self, version: int) -> bytes:
         return self.detail.encode("ascii", "replace")[:MAX_ERROR_DETAIL_BYTES]
 
     @classmethod
-    def decode(cls, payload: bytes) -> ErrorReply:
+    def decode(cls, payload: bytes, version: int = PROTOCOL_VERSION) -> ErrorReply:
         size = cls._STRUCT.size
         if not size <= len(payload) <= size + MAX_ERROR_DETAIL_BYTES:
             raise MessageError(f"ErrorReply payload is {len(payload)} bytes")
@@ -443,9 +522,10 @@ MESSAGE_CLASSES: dict[int, type[Message]] = {
 }
 
 
-def decode_message(msg_type: int, payload: bytes) -> Message:
-    """Decode a payload by its frame's message type; raises :class:`MessageError`."""
+def decode_message(msg_type: int, payload: bytes, version: int = PROTOCOL_VERSION) -> Message:
+    """Decode a payload by its frame's message type, in the layout of ``version`` (the frame
+    header's); raises :class:`MessageError`."""
     cls = MESSAGE_CLASSES.get(msg_type)
     if cls is None:
         raise UnknownMessageType(f"unknown message type 0x{msg_type:02X}")
-    return cls.decode(bytes(payload))
+    return cls.decode(bytes(payload), version)

@@ -48,7 +48,7 @@ def client(served):
 def test_info_reports_identity_capabilities_and_geometry(client):
     info = client.info()
     assert info.node_id == "node-01"
-    assert info.protocol_version == 1
+    assert info.protocol_version == 2 and (info.version_min, info.version_max) == (1, 2)
     assert info.n_channels == info.n_rx == 16 and info.adc_bits == 10
     assert info.fs_hz == 10e6 and info.decimation == 10
     assert info.tx_rx_distance_mm == 400.0

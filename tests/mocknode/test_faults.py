@@ -119,7 +119,7 @@ def test_garbage_on_power_up_is_skipped():
 
 
 def test_a_node_with_another_protocol_version_is_a_protocol_mismatch():
-    with serve(protocol_version=2) as server, quick_client(server.urls["node-01"]) as client:
+    with serve(protocol_version=3) as server, quick_client(server.urls["node-01"]) as client:
         with pytest.raises(ProtocolMismatch):
             client.info()
         with pytest.raises(ProtocolMismatch):

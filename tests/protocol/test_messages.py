@@ -1,6 +1,7 @@
 """Specification of message payloads and of chunked bulk transfers."""
 from __future__ import annotations
 
+import dataclasses
 import struct
 
 import pytest
@@ -13,6 +14,7 @@ from protocol.framing import Frame, FrameDecoder, encode_frame
 from protocol.messages import (
     MAX_CHUNK_LIST,
     MESSAGE_CLASSES,
+    AcquireReply,
     BulkChunk,
     ErrorReply,
     InfoReply,
@@ -20,6 +22,7 @@ from protocol.messages import (
     MessageError,
     ReadDiRequest,
     ReadTracesRequest,
+    TraceMeta,
     UnknownMessageType,
     decode_message,
 )
@@ -34,13 +37,14 @@ def _fixed_strategies(cls: type[Message]) -> list:
 
 
 def _info_replies():
-    def build(fixed, node_id, tx, rx):
-        return InfoReply(node_id, *fixed, n_tx=len(tx), n_rx=len(rx), tx_angles_deg=tx, rx_angles_deg=rx)
+    def build(fixed, node_id, tx, rx, versions):
+        return InfoReply(node_id, *fixed, n_tx=len(tx), n_rx=len(rx), tx_angles_deg=tx, rx_angles_deg=rx,
+                         version_min=versions[0], version_max=versions[1])
 
     fixed = st.tuples(*[_BY_CODE[c] for c in "BBBBIIHHBBBBfIfff"])
     angles = st.lists(F32, max_size=16).map(tuple)
     node_ids = st.text(st.characters(codec="utf-8", exclude_characters="\x00"), max_size=4)
-    return st.builds(build, fixed, node_ids, angles, angles)
+    return st.builds(build, fixed, node_ids, angles, angles, st.tuples(_BY_CODE["B"], _BY_CODE["B"]))
 
 
 SPECIAL = {
@@ -64,6 +68,17 @@ def strategy_for(cls: type[Message]):
 any_message = st.one_of([strategy_for(cls) for cls in MESSAGE_CLASSES.values()])
 
 
+def as_version_1(message: Message) -> Message:
+    """What survives a version-1 payload: the fields appended in version 2 are None."""
+    if isinstance(message, InfoReply):
+        return dataclasses.replace(message, version_min=None, version_max=None)
+    n = type(message).V1_FIELDS
+    if n is None:
+        return message
+    names = [f.name for f in dataclasses.fields(message)][n:]
+    return dataclasses.replace(message, **dict.fromkeys(names))
+
+
 def test_every_message_type_has_a_distinct_code():
     assert len(MESSAGE_CLASSES) == 16
     assert all(code == cls.TYPE for code, cls in MESSAGE_CLASSES.items())
@@ -72,6 +87,40 @@ def test_every_message_type_has_a_distinct_code():
 @given(any_message)
 def test_every_message_round_trips_through_its_payload(message):
     assert decode_message(message.TYPE, message.encode()) == message
+
+
+@given(any_message)
+def test_every_message_round_trips_through_a_version_1_payload_without_the_version_2_fields(message):
+    v1 = as_version_1(message)
+    assert decode_message(message.TYPE, message.encode(1), 1) == v1
+    assert v1.encode(1) == message.encode(1)
+
+
+@given(any_message)
+def test_version_2_keeps_every_version_1_offset_and_only_appends(message):
+    assert message.encode(2)[: len(message.encode(1))] == message.encode(1)
+
+
+@pytest.mark.parametrize("cls, v1_bytes, v2_bytes", [(AcquireReply, 25, 36), (TraceMeta, 50, 65)])
+def test_the_messages_version_2_extends_have_the_documented_fixed_lengths(cls, v1_bytes, v2_bytes):
+    assert (cls.layout(1).size, cls.layout(2).size) == (v1_bytes, v2_bytes)
+
+
+def test_a_version_2_message_missing_a_version_2_field_cannot_be_encoded():
+    reply = AcquireReply(1, 0, 20.0, 0xFFFF, 6000, 5, 77)
+    assert len(reply.encode(1)) == 25
+    with pytest.raises(MessageError):
+        reply.encode(2)
+
+
+def test_a_version_1_payload_does_not_decode_as_version_2():
+    with pytest.raises(MessageError):
+        decode_message(AcquireReply.TYPE, AcquireReply(1, 0, 20.0, 1, 6000, 5, 77).encode(1), 2)
+
+
+@given(_info_replies(), st.sampled_from([1, 2]))
+def test_the_protocol_version_of_an_info_reply_is_read_at_its_fixed_offset_in_every_version(info, version):
+    assert InfoReply.announced_version(info.encode(version)) == info.protocol_version
 
 
 @given(any_message, st.integers(0, 2**32 - 1))
@@ -115,7 +164,7 @@ def test_a_field_too_large_for_its_wire_type_raises_message_error():
 
 def test_info_reply_rejects_a_node_id_longer_than_thirty_two_bytes():
     reply = InfoReply("x" * 33, 1, 0, 0, 1, 0, 0, 4096, 2048, 1, 10, 10, 4, 1e6, 6000,
-                      400.0, 500.0, 3130.0, 0, 1, (), (0.0,))
+                      400.0, 500.0, 3130.0, 0, 1, (), (0.0,), 1, 2)
     with pytest.raises(MessageError):
         reply.encode()
 
