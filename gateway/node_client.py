@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from gateway.transport import NodeClientError, PortVanished, SerialTransport
 from imaging.grid import Grid
+from nodelink.transport import NodeLinkError, PortVanished, SerialTransport
 from protocol.bulk import BulkAssembler, BulkError, TransferCrcError
 from protocol.framing import FLAG_LAST, Frame, FrameDecoder, FrameError, encode_frame
 from protocol.messages import (
@@ -64,6 +64,9 @@ __all__ = [
     "TraceTransfer",
     "TransferError",
 ]
+
+
+NodeClientError = NodeLinkError  # the base of every error below (and of PortVanished)
 
 
 class NodeTimeout(NodeClientError):

@@ -53,10 +53,10 @@ from gateway.node_client import (
     ProtocolMismatch,
     TransferError,
 )
-from gateway.transport import PORT_ERRORS
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
 from imaging.pipeline import Assessment, assess
+from nodelink.transport import PORT_ERRORS
 from retry_timing.backoff import Backoff
 
 log = logging.getLogger("pipesentry.gateway")

@@ -26,11 +26,11 @@ def _termios_error() -> type[Exception]:
 PORT_ERRORS: tuple[type[Exception], ...] = (serial.SerialException, OSError, _termios_error())
 _OPEN_ERRORS: tuple[type[Exception], ...] = (*PORT_ERRORS, ValueError)  # ValueError: a malformed port URL
 
-class NodeClientError(Exception):
-    """Base of every error the gateway's node client raises."""
+class NodeLinkError(Exception):
+    """Base of every error of talking to a node: the port, the protocol, the node's answers."""
 
 
-class PortVanished(NodeClientError):
+class PortVanished(NodeLinkError):
     """The serial device or socket disappeared (unplugged, closed); ``reopen()`` is the caller's call."""
 
 
