@@ -71,6 +71,7 @@ SUPPLY_V = 5.0  # USB-powered Cmod A7
 CAPABILITY_BITS = {"on_board_di": CAP_ON_BOARD_DI, "baseline_slot": CAP_BASELINE_SLOT,
                    "chunk_retransmit": CAP_CHUNK_RETRANSMIT}
 _NEVER_BUSY = (MsgType.INFO, MsgType.STATUS)  # answered even while an acquisition runs
+_REQUEST_TYPES = frozenset(range(MsgType.INFO, MsgType.READ_DI + 1))
 
 
 class NodeSetupError(ValueError):
@@ -192,7 +193,9 @@ class MockNode:
         version = request.version if self.speaks(request.version) else self.version_max
         if versioned and request.request_id == 0 and Violation.REQUEST_ID_ZERO_RUNS not in self.violations:
             return self._error(request, ErrorCode.MALFORMED, "request id 0 is reserved", version)
-        if versioned and request.msg_type == MsgType.INFO and Violation.INFO_NEEDS_VERSION not in self.violations:
+        if versioned and request.msg_type == MsgType.INFO and (
+            self.speaks(request.version) or Violation.INFO_NEEDS_VERSION not in self.violations
+        ):
             return self._hello(request)
         if not self.speaks(request.version):
             if Violation.VERSION_IGNORED in self.violations:
@@ -208,6 +211,12 @@ class MockNode:
             request.msg_type == MsgType.ACQUIRE and Violation.ACQUIRES_TWICE in self.violations
         ):
             return [self._replay(f) for f in cached[3]]
+        if request.msg_type not in _REQUEST_TYPES:
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, f"0x{request.msg_type:02X} is not a request",
+                               version)
+        if request.msg_type in (MsgType.COMPUTE_DI, MsgType.READ_DI) and not self.capabilities & CAP_ON_BOARD_DI:
+            return self._error(request, ErrorCode.UNKNOWN_COMMAND, "no on-board DI (capability ON_BOARD_DI absent)",
+                               version)
         try:
             message = self._decode(request, version)
         except UnknownMessageType as exc:
@@ -435,12 +444,7 @@ class MockNode:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid has more than {MAX_DI_PIXELS} pixels")
         return grid
 
-    def _require_di(self) -> None:
-        if not self.capabilities & CAP_ON_BOARD_DI:
-            raise _Refused(ErrorCode.UNKNOWN_COMMAND, "no on-board DI (capability ON_BOARD_DI absent)")
-
     def _compute_di(self, message: ComputeDiRequest) -> list[Message]:
-        self._require_di()
         baseline_id = message.baseline_id or self._baseline_id
         if baseline_id == 0:
             raise _Refused(ErrorCode.NO_BASELINE, "no baseline stored")
@@ -466,7 +470,6 @@ class MockNode:
         return [reply]
 
     def _read_di(self, message: ReadDiRequest) -> list[Message]:
-        self._require_di()
         stored = self._di_maps.get(message.di_id)
         if stored is None:
             raise _Refused(ErrorCode.NO_SUCH_DI, f"DI map {message.di_id} is not in RAM")
