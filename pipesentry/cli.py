@@ -13,6 +13,7 @@ from pipesentry.commands.api import api
 from pipesentry.commands.apikey import apikey_app
 from pipesentry.commands.demo import demo
 from pipesentry.commands.gateway import gateway
+from pipesentry.commands.node_check import node_check
 
 app = typer.Typer(
     help="PipeSentry: permanent guided-wave pipe monitoring.",
@@ -31,6 +32,7 @@ app.command()(analyze)
 app.command()(demo)
 app.command()(gateway)
 app.command()(api)
+app.command("node-check")(node_check)
 app.add_typer(apikey_app, name="apikey")
 app.add_typer(alerts_app, name="alerts")
 app.command("mock-node")(mock_node)

@@ -1,6 +1,8 @@
 """Scenario files: what loads, what is rejected, and with which key named."""
 from __future__ import annotations
 
+import re
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -139,3 +141,11 @@ def test_yaml_scenarios_load_when_pyyaml_is_installed(tmp_path: Path) -> None:
     path = tmp_path / "one.yaml"
     path.write_text("nodes:\n  - node_id: y\n    rings: {n_transducers: 8}\n")
     assert load_scenario(path).nodes[0].rings.n_transducers == 8
+
+
+def test_the_simulator_documents_a_valid_scenario_of_its_firmware_power_up_and_fault_keys():
+    text = (Path(__file__).resolve().parents[2] / "docs" / "simulator.md").read_text()
+    block = next(b for b in re.findall(r"```toml\n(.*?)```", text, re.DOTALL) if "[nodes.power_up]" in b)
+    node = scenario_from_dict(tomllib.loads(block)).nodes[0]
+    assert node.firmware.busy_while_acquiring and node.power_up.averaging == 1
+    assert [v.value for v in node.faults.violations] == ["cached_crc_stale"]
