@@ -24,6 +24,7 @@ from alerts.payloads import (
     Links,
     Location,
     NodeDecommissionedPayload,
+    NodeMisconfiguredPayload,
     NodeOfflinePayload,
     NodeOnlinePayload,
     NodeRecommissionedPayload,
@@ -55,6 +56,7 @@ class EventKind(StrEnum):
     SINK_DISABLED = "sink_disabled"  # a receiver answered 410 Gone
     SENSOR_FAULT = "sensor_fault"  # a receiver (transducer channel) of a node became faulty
     SENSOR_FAULT_CLEARED = "sensor_fault_cleared"  # that receiver is healthy again
+    NODE_MISCONFIGURED = "node_misconfigured"  # the port answers as another node, or it did not apply the settings
 
 
 # The states whose entry raises damage, and how loudly.
@@ -320,6 +322,31 @@ def node_recommissioned_event(
         decommissioned=None, decommissioned_since=decommissioned_at,
     )
     return _event(settings, payload, Severity.INFO)
+
+
+def node_misconfigured_event(
+    settings: AlertingSettings,
+    *,
+    node_id: str,
+    state: NodeState | str,
+    problems: list[str],
+    boot_id: int,
+    occurred_at: datetime | None = None,
+) -> EventInput:
+    """``node_misconfigured`` (warning): the node on the port is not the configured one (its INFO
+    names another node: nothing is stored until that is fixed), or it does not run the settings
+    configured (records are stored with the settings it states). One id per node, boot and set
+    of problems, so a problem that persists is told once per boot of the node."""
+    occurred_at = occurred_at or utc_now()
+    eid = event_id(EventKind.NODE_MISCONFIGURED, node_id, boot_id, *sorted(problems))
+    payload = NodeMisconfiguredPayload(
+        **_common(settings, eid, EventKind.NODE_MISCONFIGURED, node_id, Severity.WARNING, Severity.WARNING,
+                  occurred_at),
+        summary=f"node {node_id} misconfigured: " + "; ".join(problems),
+        state=NodeState(state), previous_state=NodeState(state), online=True,
+        problems=list(problems), boot_id=boot_id,
+    )
+    return _event(settings, payload, Severity.WARNING)
 
 
 def sink_disabled_event(

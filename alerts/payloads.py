@@ -215,6 +215,15 @@ class NodeRecommissionedPayload(EventPayload):
     decommissioned_since: Instant
 
 
+class NodeMisconfiguredPayload(EventPayload):
+    """The node on the port is not the configured one, or does not run the configured settings."""
+
+    kind: Literal["node_misconfigured"]
+    node_id: str
+    problems: list[str] = Field(description="each way the node differs from its configuration, in words")
+    boot_id: int = Field(description="the node's boot in which it was found (docs/protocol.md 3.3)")
+
+
 class SinkDisabledPayload(EventPayload):
     """A receiver answered 410 Gone; about no node (node_id, state and online are null)."""
 
@@ -255,6 +264,7 @@ KIND_PAYLOADS: tuple[type[EventPayload], ...] = (
     BaselineChangedPayload,
     NodeDecommissionedPayload,
     NodeRecommissionedPayload,
+    NodeMisconfiguredPayload,
     SinkDisabledPayload,
     SensorFaultPayload,
     SensorFaultClearedPayload,
@@ -266,6 +276,7 @@ AlertPayload = Annotated[
     | BaselineChangedPayload
     | NodeDecommissionedPayload
     | NodeRecommissionedPayload
+    | NodeMisconfiguredPayload
     | SinkDisabledPayload
     | SensorFaultPayload
     | SensorFaultClearedPayload,

@@ -25,6 +25,7 @@ ICONS = {
     "sensor_fault_cleared": ":white_check_mark:",
     "node_decommissioned": ":no_entry_sign:",
     "node_recommissioned": ":arrow_forward:",
+    "node_misconfigured": ":warning:",
 }
 
 

@@ -44,6 +44,7 @@ def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for:
         temperature_c=acquisition.temperature_c,
         velocity_m_s=acquisition.velocity_m_s,
         wall_mm=acquisition.wall_mm,
+        boot_id=acquisition.boot_id,
         di_maps=record.di_maps,
         detection=record.detection,
         state_change=record.state_change,

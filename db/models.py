@@ -11,6 +11,7 @@ from enum import StrEnum
 from typing import Any, ClassVar
 
 from sqlalchemy import (
+    BigInteger,
     Boolean,
     CheckConstraint,
     Enum,
@@ -125,6 +126,14 @@ class NodeRow(Base):
     decommissioned_at: Mapped[datetime | None]
     decommissioned_by: Mapped[str | None] = mapped_column(String(128))
     decommission_reason: Mapped[str | None] = mapped_column(Text)
+    # The link as the gateway last found it (revision 0005): who answers on the port, its boot,
+    # the settings it applied, and how either differs from the configuration.
+    reported_node_id: Mapped[str | None] = mapped_column(String(64))  # INFO's node_id
+    boot_id: Mapped[int | None] = mapped_column(BigInteger)
+    reboots: Mapped[int] = mapped_column(Integer, server_default="0")  # that the gateway noticed
+    last_reboot_at: Mapped[datetime | None]
+    applied_settings: Mapped[dict[str, Any] | None] = mapped_column(json_type())  # CONFIGURE_REPLY
+    link_problems: Mapped[list[Any] | None] = mapped_column(json_type())  # identity, settings not applied
 
 
 class MeasurementRow(Base):
@@ -156,6 +165,7 @@ class MeasurementRow(Base):
     # What the gateway imaged the record with (revision 0004; NULL before: the default velocity, no wall).
     velocity_m_s: Mapped[float | None] = mapped_column(Float)
     wall_mm: Mapped[float | None] = mapped_column(Float)
+    boot_id: Mapped[int | None] = mapped_column(BigInteger)  # the node's boot it was taken in (revision 0005)
     # Deferred: listing measurements must not drag ~100 kB per row out of the database.
     traces_blob: Mapped[bytes | None] = mapped_column(LargeBinary, deferred=True)
     traces_codec: Mapped[str] = mapped_column(String(32))

@@ -138,3 +138,29 @@ def record_node_health(
         node.last_seen_at = seen_at or utc_now()
     session.flush()
     return node
+
+
+def record_node_link(
+    session: Session,
+    node_id: str,
+    *,
+    reported_node_id: str,
+    boot_id: int,
+    applied_settings: Mapping[str, float | int] | None,
+    problems: Sequence[str],
+    rebooted: bool = False,
+    seen_at: datetime | None = None,
+) -> NodeRow:
+    """Store what the gateway found on the node's port at (re)connection: who answers, its boot,
+    the settings it applied and how it differs from the configuration; ``rebooted`` counts a
+    reboot the gateway noticed (a new boot id on an open port)."""
+    node = get_node(session, node_id)
+    node.reported_node_id = reported_node_id
+    node.boot_id = boot_id
+    node.applied_settings = None if applied_settings is None else dict(applied_settings)
+    node.link_problems = list(problems)
+    if rebooted:
+        node.reboots = (node.reboots or 0) + 1
+        node.last_reboot_at = seen_at or utc_now()
+    session.flush()
+    return node

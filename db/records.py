@@ -123,7 +123,8 @@ class EventInput:
 
 @dataclass(frozen=True)
 class AcquisitionInput:
-    """One acquisition as the node sent it: raw ADC codes int16 [n_channels, n_samples] and how they were taken."""
+    """One acquisition as the node sent it: raw ADC codes int16 [n_channels, n_samples] and how they were
+    taken, as the node states it (not what the gateway asked for)."""
 
     acquired_at: datetime
     node_measurement_id: int
@@ -137,6 +138,7 @@ class AcquisitionInput:
     temperature_c: float | None = None
     velocity_m_s: float | None = None  # the wave velocity the record is imaged with
     wall_mm: float | None = None  # the wall thickness it is imaged with
+    boot_id: int | None = None  # the node's boot it was taken in
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,14 @@ def _node_view(node: NodeRow, baseline: BaselineRow | None, detection: Detection
         n_channels=node.n_channels,
         fs_hz=node.fs_hz,
         geometry=schemas.Geometry.model_validate(node.geometry),
-        health=schemas.Health(online=node.online, first_seen_at=node.first_seen_at, last_seen_at=node.last_seen_at),
+        health=schemas.Health(
+            online=node.online, first_seen_at=node.first_seen_at, last_seen_at=node.last_seen_at,
+            reported_node_id=node.reported_node_id, boot_id=node.boot_id, reboots=node.reboots or 0,
+            last_reboot_at=node.last_reboot_at,
+            applied_settings=None if node.applied_settings is None
+            else schemas.AppliedSettings.model_validate(node.applied_settings),
+            problems=[str(p) for p in node.link_problems or []],
+        ),
         error_counters={str(k): int(v) for k, v in (node.error_counters or {}).items()},
         state=node.state,
         latest_di_peak=node.latest_di_peak,

@@ -28,10 +28,30 @@ class Geometry(_Out):
     tx_axial_mm: float | None = Field(None, description="Tx ring position from the pipe end behind it")
 
 
+class AppliedSettings(_Out):
+    """The acquisition settings the node said it applied (its CONFIGURE_REPLY)."""
+
+    excitation_hz: float
+    cycles: int
+    averaging: int
+    channel_mask: int
+    n_samples: int
+
+
 class Health(_Out):
     online: bool = Field(description="the node answered its last poll")
     first_seen_at: datetime
     last_seen_at: datetime = Field(description="when the node last answered")
+    reported_node_id: str | None = Field(
+        None, description="the node_id the node on the port reports (INFO); records are stored only when it is "
+        "this node's id")
+    boot_id: int | None = Field(None, description="the node's boot id as last seen (docs/protocol.md 3.3)")
+    reboots: int = Field(0, description="reboots the gateway noticed (a new boot id on an open port)")
+    last_reboot_at: datetime | None = None
+    applied_settings: AppliedSettings | None = Field(None, description="what the node runs since its last CONFIGURE")
+    problems: list[str] = Field(
+        default_factory=list, description="how the node differs from its configuration: another node_id on the "
+        "port (nothing stored), settings the node did not apply (records stored with what it states)")
 
 
 class Baseline(_Out):

@@ -231,7 +231,7 @@ def test_a_database_of_release_0003_upgrades_keeping_its_records_which_export_wi
         command.upgrade(alembic_config(connection), "0003")
         connection.commit()
         with Session(connection) as session:  # a record as release 0003 stored it (no velocity, no wall)
-            upsert_node(session, node_info(), seen_at=T0)
+            store_node_as_of_0003(session)
             old_id = store_sample_as_of_0003(session)
             session.commit()
     engine.dispose()
@@ -252,8 +252,22 @@ def test_a_database_of_release_0003_upgrades_keeping_its_records_which_export_wi
         database.dispose()
 
 
+def store_node_as_of_0003(session) -> None:
+    """Insert node-a with only the columns revision 0003 has (the ORM model is head's)."""
+    from sqlalchemy import insert
+
+    from db.models import NodeRow, NodeState
+
+    info = node_info()
+    session.execute(insert(NodeRow).values(
+        node_id=info.node_id, port_url=info.port_url, firmware=info.firmware, protocol_version=info.protocol_version,
+        n_channels=info.n_channels, fs_hz=info.fs_hz, geometry=info.geometry.model_dump(mode="json"),
+        first_seen_at=T0, last_seen_at=T0, online=True, error_counters={}, state=NodeState.COMMISSIONING,
+    ))
+
+
 def store_sample_as_of_0003(session) -> int:
-    """Insert a measurement with only the columns revision 0003 has (the ORM model is 0004's)."""
+    """Insert a measurement with only the columns revision 0003 has (the ORM model is head's)."""
     from sqlalchemy import insert
 
     from db import blobs

@@ -43,6 +43,28 @@ def latest_monitor_id(viewer, node_id: str) -> int:
 
 # ------------------------------------------------------------------ nodes
 
+def test_node_health_shows_who_answers_on_the_port_its_boot_and_the_settings_it_applied(api: Api, viewer):
+    from db.nodes import record_node_link
+
+    for node in viewer.get("/api/v1/nodes").json():  # as the real gateway left them
+        health = node["health"]
+        assert health["reported_node_id"] == node["node_id"] and health["problems"] == []
+        assert health["boot_id"] > 0 and health["reboots"] == 0
+        assert health["applied_settings"] == {"excitation_hz": 85000.0, "cycles": 5, "averaging": 10,
+                                              "channel_mask": 0xFFFF, "n_samples": 6000}
+    problem = "node_id: the node on /dev/ttyUSB3 reports 'pipe-x', configured 'pipe-a'"
+    database = open_database(api.db_url, upgrade=False)
+    try:
+        with database.write() as session:
+            record_node_link(session, DAMAGED_NODE, reported_node_id="pipe-x", boot_id=77, applied_settings=None,
+                             problems=[problem], rebooted=True)
+        health = viewer.get(f"/api/v1/nodes/{DAMAGED_NODE}").json()["health"]
+        assert (health["reported_node_id"], health["boot_id"], health["reboots"]) == ("pipe-x", 77, 1)
+        assert health["problems"] == [problem] and health["applied_settings"] is None and health["last_reboot_at"]
+    finally:
+        database.dispose()
+
+
 def test_node_list_shows_identity_health_state_and_baseline_of_every_node(viewer):
     nodes = viewer.get("/api/v1/nodes").json()
     assert [n["node_id"] for n in nodes] == ALL_NODES
