@@ -15,6 +15,8 @@ from db.measurements import get_measurement, load_traces
 from db.models import MapSource, NodeState
 from db.records import DetectionInput, DiMapInput, MapGrid
 from gateway.config import NodeSettings
+from gateway.record_settings import RecordSettings
+from imaging.compensation import NoValidBaseline
 from imaging.measurement import Measurement
 from imaging.pipeline import Assessment, AssessSettings
 
@@ -25,14 +27,22 @@ class BaselineLibrary:
 
     def __init__(self) -> None:
         self._cache: dict[int, Measurement] = {}
+        self._settings: dict[int, RecordSettings] = {}
+
+    def settings(self, ids: list[int]) -> list[RecordSettings]:
+        """The settings each loaded baseline was taken with, in the order of ``ids``."""
+        return [self._settings[i] for i in ids]
 
     def load(self, session: Session, ids: list[int], view: NodeGeometryView) -> list[Measurement]:
         for stale in set(self._cache) - set(ids):
             del self._cache[stale]
+            self._settings.pop(stale, None)
         out = []
         for measurement_id in ids:
             if measurement_id not in self._cache:
                 row = get_measurement(session, measurement_id)
+                self._settings[measurement_id] = RecordSettings(
+                    row.excitation_hz, row.cycles, row.averaging, row.n_channels, row.n_samples, row.fs_hz, row.t0_s)
                 self._cache[measurement_id] = measurement_from_codes(
                     load_traces(row),
                     row.volts_per_code,
@@ -96,6 +106,13 @@ def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float 
         wall_mm=wall_mm,
         **extra,
     )
+
+
+def abstained(settings: AssessSettings, reason: str) -> Assessment:
+    """An assessment that made no map, for ``reason`` (the record is comparable with no baseline):
+    stored and decided on like any imaging that abstains."""
+    return Assessment(settings.method, settings.feature, settings.effective_threshold, None, None, [], None,
+                      NoValidBaseline(None, math.nan, math.nan, reason), [], 0.0)
 
 
 def gateway_map(result: Assessment, library_ids: list[int]) -> DiMapInput | None:

@@ -121,8 +121,18 @@ class NodeSettings(_Section):
     url: str = Field(min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://host:port, loop://")
     baud: int = Field(230400, gt=0)
     interval_s: float = Field(60.0, gt=0, description="time between measurement cycles")
-    timeout_s: float = Field(2.0, gt=0, description="reply timeout per command")
-    retries: int = Field(3, ge=0, le=20)
+    # The host timeouts docs/protocol.md (section 3.5) tells an integrator to set:
+    timeout_s: float = Field(2.0, gt=0, le=600, description="reply timeout per command, and the longest gap in a bulk reply")
+    retries: int = Field(3, ge=0, le=20, description="resends after a timeout or ERROR BUSY (same request id)")
+    backoff_s: float = Field(0.05, gt=0, le=60, description="first wait before a resend; doubles per resend")
+    backoff_max_s: float = Field(2.0, gt=0, le=600, description="cap of the wait before a resend")
+    shot_period_s: float = Field(
+        0.01, gt=0, le=10, description="ACQUIRE waits timeout_s + averaging x shot_period_s: the node's pulse period"
+    )
+    compute_timeout_s: float = Field(
+        60.0, gt=0, le=86400, description="COMPUTE_DI's wait: as long as the node's on-board DI may take"
+    )
+    transfer_rounds: int = Field(4, ge=0, le=64, description="chunk re-request rounds per bulk transfer")
     read_node_di: bool = Field(True, description="also read the node's own on-board DI map")
     commissioning_count: int = Field(1, ge=1, le=100, description="first N measurements become baselines")
     excitation_hz: float = Field(85e3, ge=1e3, le=1e6, description="tone-burst centre frequency sent in CONFIGURE")
@@ -132,6 +142,28 @@ class NodeSettings(_Section):
     geometry: GeometryOverride = GeometryOverride()
     imaging: ImagingSettings = ImagingSettings()
     threshold: ThresholdSettings = ThresholdSettings()
+
+    @model_validator(mode="after")
+    def _backoff_in_order(self) -> NodeSettings:
+        if self.backoff_max_s < self.backoff_s:
+            raise ValueError(f"backoff_max_s ({self.backoff_max_s}) is below backoff_s ({self.backoff_s})")
+        return self
+
+    def client_options(self) -> dict[str, float | int]:
+        """The NodeClient keyword arguments these settings give (docs/protocol.md, section 3.5)."""
+        return {
+            "baudrate": self.baud, "timeout_s": self.timeout_s, "retries": self.retries,
+            "backoff_s": self.backoff_s, "backoff_max_s": self.backoff_max_s, "shot_period_s": self.shot_period_s,
+            "compute_timeout_s": self.compute_timeout_s, "transfer_rounds": self.transfer_rounds,
+        }
+
+    def worst_cycle_s(self) -> float:
+        """The longest a cycle can take before every command has given up: the wait between cycles,
+        ~60 replies and gaps of a cycle with a reconfiguration and two bulk transfers, and the
+        acquisition's and on-board DI's own waits, each resent ``retries`` times."""
+        per_attempt_s = 60 * self.timeout_s + self.averaging * self.shot_period_s + self.compute_timeout_s
+        resends_s = self.retries * self.backoff_max_s
+        return self.interval_s + (self.retries + 1) * per_attempt_s + resends_s
 
 
 class GatewaySettings(BaseSettings):

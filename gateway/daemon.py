@@ -49,7 +49,7 @@ class Gateway:
         for w in self.workers:
             node = w.settings
             # A full cycle: several commands with retries, a bulk transfer, a wait between cycles.
-            cycle_s = node.interval_s + self.settings.reopen_backoff_max_s + 60 * node.timeout_s * (node.retries + 1)
+            cycle_s = node.worst_cycle_s() + self.settings.reopen_backoff_max_s
             limits[w.name] = fixed or 3 * cycle_s
         limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
         limits.update({name: fixed or limit for name, limit in self.alerting.stall_limits_s().items()})

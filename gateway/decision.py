@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 
 from alerts.alarms import AlarmChange, BaselineSet, NodeAlarms, alarm_change, alarm_events
@@ -21,6 +21,7 @@ from db.records import DetectionInput, EventInput, StateChangeInput
 from gateway.assessment import detection_input, joins_library
 from gateway.config import NodeSettings
 from gateway.flagging import FlagState, step
+from gateway.record_settings import RecordSettings, comparable
 from imaging.measurement import Measurement
 from imaging.pipeline import Assessment
 
@@ -53,6 +54,18 @@ class MonitoringInputs:
     library: Sequence[Measurement]  # ... and the baselines themselves
     sensor_faults: SensorFaultHistory
     alarms: NodeAlarms = field(default_factory=NodeAlarms)  # the node's open alarms (alerts.alarms.open_alarms)
+
+
+def comparable_inputs(
+    inputs: MonitoringInputs, library_settings: Sequence[RecordSettings], record: RecordSettings
+) -> tuple[MonitoringInputs, str | None]:
+    """The inputs with the library cut to the baselines taken with the record's own settings, and,
+    when none is, why: a record is never imaged against a baseline of other settings (a reboot
+    that brought back power-up settings, a node that clamped them, a changed configuration).
+    The active baseline keeps its place first when it qualifies."""
+    keep, reason = comparable(record, library_settings)
+    return replace(inputs, library_ids=[inputs.library_ids[i] for i in keep],
+                   library=[inputs.library[i] for i in keep]), reason
 
 
 @dataclass(frozen=True)

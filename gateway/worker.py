@@ -8,6 +8,7 @@ gateway/decision.py (the verdict), db/cycles.py (the transaction).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import statistics
 import threading
@@ -19,7 +20,12 @@ from sqlalchemy.orm import Session
 
 from alerts.alarms import BaselineSet, decommissioning_events, open_alarms
 from alerts.config import AlertingSettings
-from alerts.events import SENSOR_FAULT_KINDS, node_decommissioned_event, node_recommissioned_event
+from alerts.events import (
+    SENSOR_FAULT_KINDS,
+    node_decommissioned_event,
+    node_misconfigured_event,
+    node_recommissioned_event,
+)
 from alerts.sensor_faults import sensor_fault_history
 from db.baselines import active_baseline, library_baseline_ids
 from db.clock import utc_now
@@ -28,21 +34,31 @@ from db.database import Database
 from db.errors import StorageError, StorageUnavailable
 from db.measurements import add_event_once
 from db.models import MeasurementKind, NodeState
-from db.nodes import get_node, is_decommissioned, record_node_health, upsert_node
+from db.nodes import get_node, is_decommissioned, record_node_health, record_node_link, upsert_node
 from db.queries import baseline_count, calibration_peaks, recent_verdicts
-from db.records import CycleRecord, DiMapInput, EventInput
-from gateway.acquisition import Acquisition, ClientFactory, Connection, acquire, open_connection
-from gateway.assessment import BaselineLibrary, assess_settings, gateway_map
+from db.records import CycleRecord, DiMapInput, EventInput, NodeInfo
+from gateway.acquisition import (
+    Acquisition,
+    ClientFactory,
+    Connection,
+    NodeIdentityMismatch,
+    SettingsChanged,
+    acquire,
+    open_connection,
+)
+from gateway.assessment import BaselineLibrary, abstained, assess_settings, gateway_map
 from gateway.config import NodeSettings
 from gateway.decision import (
     MonitoringInputs,
     NodeHistory,
     Verdict,
+    comparable_inputs,
     decide_commissioning,
     decide_monitoring,
     is_commissioning,
 )
 from gateway.flagging import FlagState, restored_flag_state, threshold_for
+from gateway.geometry import effective_geometry
 from gateway.logs import node_context
 from gateway.node_client import (
     NodeClient,
@@ -171,6 +187,11 @@ class NodeWorker:
                 except ProtocolMismatch as exc:
                     failures += 1
                     self._drop_connection(f"protocol mismatch: {exc}")
+                except NodeIdentityMismatch as exc:
+                    failures += 1
+                    self.counters.failures += 1
+                    self._surface_identity(exc)
+                    self._drop_connection(f"not polled: {exc}")
                 except NodeClientError as exc:
                     failures += 1
                     self.counters.count_failure(exc)
@@ -271,13 +292,46 @@ class NodeWorker:
         try:
             with self.db.write() as session:
                 upsert_node(session, conn.node_info(self.settings))
+                self._record_link(session, conn)
         except BaseException:
             conn.client.close()
             raise
         info = conn.info
-        log.info("connected: node %s firmware %d.%d.%d, %d channels", info.node_id, info.fw_major, info.fw_minor,
-                 info.fw_patch, info.n_channels)
+        log.info("connected: node %s firmware %d.%d.%d, protocol %d, %d channels, boot id %#010x", info.node_id,
+                 info.fw_major, info.fw_minor, info.fw_patch, info.protocol_version, info.n_channels, info.boot_id)
         return conn
+
+    def _record_link(self, session: Session, conn: Connection, *, rebooted: bool = False) -> None:
+        """What the gateway found on the port, on the node's record; a problem is also an event."""
+        node = record_node_link(
+            session, self.settings.id, reported_node_id=conn.info.node_id, boot_id=conn.boot_id,
+            applied_settings=conn.applied(), problems=conn.problems, rebooted=rebooted,
+        )
+        if conn.problems:
+            add_event_once(session, node_misconfigured_event(
+                self.alerting, node_id=self.settings.id, state=node.state.value, problems=list(conn.problems),
+                boot_id=conn.boot_id,
+            ), node_id=self.settings.id)
+
+    def _surface_identity(self, exc: NodeIdentityMismatch) -> None:
+        """Another node answers on the port: registered under the configured id with the problem and an
+        event, so an operator sees it; no measurement is taken or stored."""
+        info = exc.info
+        try:
+            with self.db.write() as session:
+                upsert_node(session, NodeInfo(
+                    node_id=self.settings.id, port_url=self.settings.url, firmware=info.firmware_version,
+                    protocol_version=info.protocol_version, n_channels=info.n_channels, fs_hz=info.fs_hz,
+                    geometry=effective_geometry(info, self.settings.geometry).geometry,
+                ))
+                node = record_node_link(session, self.settings.id, reported_node_id=info.node_id,
+                                        boot_id=info.boot_id, applied_settings=None, problems=[exc.problem])
+                add_event_once(session, node_misconfigured_event(
+                    self.alerting, node_id=self.settings.id, state=node.state.value, problems=[exc.problem],
+                    boot_id=info.boot_id,
+                ), node_id=self.settings.id)
+        except StorageError as storage:
+            log.error("could not record the identity mismatch: %s", storage)
 
     def poll_once(self) -> CycleOutcome:
         """One cycle: acquire (node I/O) -> assess (imaging) -> decide (pure) -> store (one transaction) -> deliver."""
@@ -288,17 +342,24 @@ class NodeWorker:
         with self.db.session() as session:
             history = node_history(session, self.settings.id)
         if is_commissioning(self.settings, history):
-            acquisition = acquire(conn, baseline=True, read_node_map=False)
+            acquisition = self._acquire(conn, commissioning=True, read_node_map=False)
+            if acquisition.connection.stale:
+                raise SettingsChanged(f"commissioning measurement {acquisition.reply.measurement_id} was taken with "
+                                      f"other settings than configured ({', '.join(acquisition.unexpected)}): not a "
+                                      "baseline, dropped")
             verdict = decide_commissioning(self.settings, history)
             maps: list[DiMapInput] = []
         else:
             with self.db.session() as session:
                 inputs = self._monitoring_inputs(session, history, conn)
-            acquisition = acquire(conn, baseline=False, read_node_map=self.settings.read_node_di)
-            assessment = assess(
-                acquisition.measurement, list(inputs.library),
-                assess_settings(self.settings, inputs.threshold, conn.view.wall_mm),
-            )
+            acquisition = self._acquire(conn, commissioning=False, read_node_map=self.settings.read_node_di)
+            imaging = assess_settings(self.settings, inputs.threshold, conn.view.wall_mm)
+            inputs, mismatch = comparable_inputs(inputs, self.library.settings(list(inputs.library_ids)),
+                                                 acquisition.settings)
+            if mismatch is not None:
+                assessment = abstained(imaging, mismatch)
+            else:
+                assessment = assess(acquisition.measurement, list(inputs.library), imaging)
             _log_assessment(assessment)
             verdict = decide_monitoring(
                 self.settings, history, inputs, assessment, temperature_c=acquisition.temperature_c, now=utc_now()
@@ -320,7 +381,19 @@ class NodeWorker:
                 lambda measurement_id: verdict.events(self.alerting, node_id=self.settings.id,
                                                       measurement_id=measurement_id),
             )
+        if acquisition.filled_slot and self.conn is not None:  # the node's own maps are made against this record
+            self.conn = dataclasses.replace(self.conn, slot_measurement_id=stored.measurement_id)
         return self._deliver(verdict, stored, acquisition)
+
+    def _acquire(self, conn: Connection, *, commissioning: bool, read_node_map: bool) -> Acquisition:
+        """The node I/O of the cycle; a connection renewed on the way (a reboot) is kept and recorded."""
+        acquisition = acquire(conn, self.settings, commissioning=commissioning, read_node_map=read_node_map)
+        renewed = acquisition.connection
+        self.conn = renewed
+        if renewed.info is not conn.info:
+            with self.db.write() as session:
+                self._record_link(session, renewed, rebooted=acquisition.rebooted_from is not None)
+        return acquisition
 
     def _monitoring_inputs(self, session: Session, history: NodeHistory, conn: Connection) -> MonitoringInputs:
         """The baseline library, the threshold, the flagger's memory and the recent sensor verdicts."""
