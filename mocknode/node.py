@@ -16,15 +16,16 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 import numpy as np
 
-from imaging.dimap import BaselineMismatch, compute_di_map
+from imaging.dimap import BaselineMismatch
 from imaging.grid import Grid, GridError
 from imaging.measurement import Measurement, MeasurementError
 from mocknode import physics
 from mocknode.faults import Violation
+from mocknode.onboard_di import Decimation, GridRefused, decimated, onboard_map, requested_grid
 from mocknode.scenario import NodeScenario
 from mocknode.violations import StaleCrcFrame, lenient_decode
 from protocol.bulk import n_chunks_for, split_chunks
@@ -63,7 +64,6 @@ FIRMWARE_VERSION = (0, 4, 0)
 CHUNK_BYTES = 2048  # bulk payload per frame: 98 % wire efficiency, 4 KiB frame buffers
 MAX_MEASUREMENTS = 4  # RAM slots, the baseline included (4 x 96 KB of the 512 KB SRAM)
 MAX_DI_MAPS = 2
-MAX_DI_PIXELS = 65536  # float32: 256 KB
 MAX_CHANNELS = 32  # the channel mask is 32 bits wide
 REPLY_CACHE_SIZE = 16
 SHOT_PERIOD_S = 0.005  # time per averaged shot (pulse repetition), for ACQUIRE's service time
@@ -425,24 +425,9 @@ class MockNode:
         return [BulkChunk(i, len(pieces), pieces[i]) for i in indices]
 
     def _decimated(self, stored: _Stored, factor: int) -> Measurement:
-        full = stored.measurement
-        method: Literal["subsample", "boxcar"] = (
-            "boxcar" if Violation.DI_BOXCAR_DECIMATION in self.violations else "subsample")
-        codes = physics.decimate_codes(stored.acquisition.codes, factor, method=method)
-        traces = np.asarray(codes, dtype=np.float64) * stored.acquisition.volts_per_code
-        return dataclasses.replace(full, traces=traces, fs_hz=full.fs_hz / factor)
-
-    def _grid(self, message: ComputeDiRequest) -> Grid:
-        if message.axial_count == 0:
-            return Grid.default(self.scenario.rings.tx_rx_distance_mm, axial_step_mm=2.0, angle_step_deg=2.0)
-        try:
-            grid = Grid(message.axial_start_mm, message.axial_step_mm, message.axial_count,
-                        message.angle_start_deg, message.angle_step_deg, message.angle_count)
-        except GridError as exc:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid: {exc}") from exc
-        if grid.axial_count * grid.angle_count > MAX_DI_PIXELS:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"grid has more than {MAX_DI_PIXELS} pixels")
-        return grid
+        method: Decimation = "boxcar" if Violation.DI_BOXCAR_DECIMATION in self.violations else "subsample"
+        return decimated(stored.measurement, stored.acquisition.codes, stored.acquisition.volts_per_code, factor,
+                         method)
 
     def _compute_di(self, message: ComputeDiRequest) -> list[Message]:
         baseline_id = message.baseline_id or self._baseline_id
@@ -452,13 +437,13 @@ class MockNode:
         factor = message.decimation or self.scenario.acquisition.decimation
         if not 1 <= factor <= 100:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "decimation outside 1..100")
-        grid = self._grid(message)
         try:
-            di = compute_di_map(self._decimated(baseline, factor), self._decimated(current, factor), grid)
+            grid = requested_grid(message, self.scenario.rings.tx_rx_distance_mm)
+            pixels, peak = onboard_map(self._decimated(baseline, factor), self._decimated(current, factor), grid)
+        except GridRefused as exc:
+            raise _Refused(ErrorCode.BAD_ARGUMENT, str(exc)) from exc
         except BaselineMismatch as exc:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"baseline mismatch: {exc}") from exc
-        pixels = np.asarray(di.pixels, dtype=np.float32)
-        peak = np.unravel_index(int(np.argmax(pixels)), pixels.shape)
         reply = ComputeDiReply(
             self._next_di_id, current.measurement_id, baseline.measurement_id, factor, grid.axial_count,
             grid.angle_count, float(pixels[peak]), float(grid.axial_mm[peak[0]]), float(grid.angle_deg[peak[1]]),

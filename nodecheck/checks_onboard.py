@@ -1,6 +1,7 @@
 """Checks of the on-board DI map and of absent capabilities: R-DI-1, R-DI-2, R-CAP-1."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +17,7 @@ from protocol.messages import (
     CAP_CHUNK_RETRANSMIT,
     CAP_ON_BOARD_DI,
     CAPABILITY_NAMES,
+    MAX_DI_PIXELS,
     AcquireRequest,
     ComputeDiReply,
     ComputeDiRequest,
@@ -25,7 +27,6 @@ from protocol.messages import (
     ReadTracesRequest,
 )
 
-MAX_DI_PIXELS = 65536
 DI_TOLERANCE = 1e-3  # of the map's peak: float32 pixels, a float32 volts_per_code
 _CUSTOM_GRID = Grid(100.0, 5.0, 41, 10.0, 10.0, 36)
 
@@ -100,8 +101,10 @@ def check_di(ctx: Context) -> NotApplicable | str:
                meta.n_angle)
     expect(got == g and meta.decimation == 5, f"a {g} map at decimation 5 came back as {got}, decimation "
            f"{meta.decimation}")
-    too_big = ComputeDiRequest(current.acquired.measurement_id, asked, 0, 0.0, 1.0, 300, 0.0, 1.0, 300)
-    ctx.expect_error(ctx.ask(too_big, timeout_s=timeout_s), ErrorCode.BAD_ARGUMENT, "a 300 x 300 pixel grid")
+    side = math.isqrt(MAX_DI_PIXELS) + 1
+    too_big = ComputeDiRequest(current.acquired.measurement_id, asked, 0, 0.0, 1.0, side, 0.0, 1.0, side)
+    ctx.expect_error(ctx.ask(too_big, timeout_s=timeout_s), ErrorCode.BAD_ARGUMENT,
+                     f"a {side} x {side} pixel grid (over {MAX_DI_PIXELS})")
     ctx.expect_error(ctx.ask(ReadDiRequest(0xFFFFFFF0)), ErrorCode.NO_SUCH_DI, "READ_DI of map 0xFFFFFFF0")
     ctx.expect_error(ctx.ask(ComputeDiRequest(0xFFFFFFF0, asked), timeout_s=timeout_s),
                      ErrorCode.NO_SUCH_MEASUREMENT, "COMPUTE_DI of measurement 0xFFFFFFF0")

@@ -24,6 +24,7 @@ from protocol.versions import PROTOCOL_VERSION
 NODE_ID_BYTES = 32
 MAX_ERROR_DETAIL_BYTES = 64
 MAX_CHUNK_LIST = 512  # chunk indices one READ_* request may name
+MAX_DI_PIXELS = 65536  # the largest on-board DI map a COMPUTE_DI may ask for (float32: 256 KB)
 
 
 class MessageError(ValueError):

@@ -10,6 +10,7 @@ from alerts.config import AlertingSettings
 from alerts.events import (
     EventKind,
     baseline_changed_event,
+    node_misconfigured_event,
     node_offline_event,
     node_online_event,
     sensor_fault_cleared_event,
@@ -113,6 +114,18 @@ def test_baseline_change_links_the_new_baseline_measurement():
     assert event.kind == EventKind.BASELINE_CHANGED and event.severity == Severity.INFO
     assert event.payload["links"]["measurement"].endswith("/api/v1/measurements/77")
     assert event.sinks == ("all",) and "pipe repaired" in event.payload["summary"]
+
+
+def test_a_misconfigured_node_is_a_warning_listing_its_problems_once_per_boot():
+    problems = ["node_id: the node on /dev/ttyUSB3 reports 'pipe-x', configured 'pipe-a'"]
+    event = node_misconfigured_event(SETTINGS, node_id="pipe-a", state="ok", problems=problems, boot_id=7,
+                                     occurred_at=T0)
+    assert event.kind == EventKind.NODE_MISCONFIGURED and event.severity == Severity.WARNING
+    assert event.sinks == ("all", "warnings") and event.payload["problems"] == problems
+    assert event.payload["summary"] == "node pipe-a misconfigured: " + problems[0]
+    again = node_misconfigured_event(SETTINGS, node_id="pipe-a", state="ok", problems=problems, boot_id=7)
+    next_boot = node_misconfigured_event(SETTINGS, node_id="pipe-a", state="ok", problems=problems, boot_id=8)
+    assert again.id == event.id != next_boot.id
 
 
 def test_a_disabled_sink_is_reported_to_the_others_only():

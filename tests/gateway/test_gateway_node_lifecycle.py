@@ -27,6 +27,17 @@ pytestmark = pytest.mark.timeout(120)
 POWER_UP = PowerUpSpec(averaging=1, n_samples=5000, excitation_hz=60e3)
 
 
+def power_cycle(server: MockNodeServer) -> None:
+    """Reboot the mock node and return once it has (it reboots between requests, in its own thread)."""
+    runner = next(iter(server.runners.values()))
+    before = runner.reboots
+    server.power_cycle()
+    deadline = time.monotonic() + 5.0
+    while runner.reboots == before:
+        assert time.monotonic() < deadline, "the mock node did not reboot"
+        time.sleep(0.01)
+
+
 class RebootBeforeAcquire(NodeClient):
     """The real client; when armed, the node is power-cycled after STATUS and before ACQUIRE."""
 
@@ -36,13 +47,7 @@ class RebootBeforeAcquire(NodeClient):
     def acquire(self, baseline: bool, timeout_s: float | None = None):
         if self.armed.is_set():
             self.armed.clear()
-            runner = next(iter(self.server.runners.values()))
-            before = runner.reboots
-            self.server.power_cycle()
-            deadline = time.monotonic() + 5.0
-            while runner.reboots == before:  # the node reboots between requests, in its own thread
-                assert time.monotonic() < deadline, "the mock node did not reboot"
-                time.sleep(0.01)
+            power_cycle(self.server)
         return super().acquire(baseline, timeout_s)
 
 
@@ -127,12 +132,7 @@ def test_the_node_map_after_a_reboot_is_made_against_the_record_that_refilled_it
     worker, db = node
     worker.poll_once()
     worker.poll_once()
-    RebootBeforeAcquire.server.power_cycle()  # a reboot STATUS will see
-    runner = next(iter(RebootBeforeAcquire.server.runners.values()))
-    deadline = time.monotonic() + 5
-    while runner.reboots == 0:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    power_cycle(RebootBeforeAcquire.server)  # a reboot STATUS will see
     worker.poll_once()  # re-configured; this record refills the node's baseline slot
     worker.poll_once()
     measurements = rows(db, MeasurementRow)

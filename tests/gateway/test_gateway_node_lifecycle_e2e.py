@@ -46,6 +46,8 @@ def read(db_url: str, fn):
 
 
 def run_fleet(tmp_path: Path, scenario_text: str, link_ids: list[str], nodes: list[dict]):
+    """Mock nodes on ptys and the gateway on them. Each of ``nodes`` is a gateway node's settings
+    with ``id``; ``link`` names the mock node whose port it is given (default: its own id)."""
     scenario = tmp_path / "s.toml"
     scenario.write_text(scenario_text)
     links = tmp_path / "links"
@@ -53,7 +55,11 @@ def run_fleet(tmp_path: Path, scenario_text: str, link_ids: list[str], nodes: li
     wait_for_links(links, link_ids, mock)
     db_path = tmp_path / "gateway.db"
     config = tmp_path / "gateway.toml"
-    config.write_text(gateway_config(db_path, [gateway_node(n.pop("node_id"), links, **n) for n in nodes]))
+    configured = []
+    for node in nodes:
+        rest = {k: v for k, v in node.items() if k not in ("id", "link")}
+        configured.append(gateway_node(node["id"], links, url=str(links / node.get("link", node["id"])), **rest))
+    config.write_text(gateway_config(db_path, configured))
     return mock, start_gateway(config, tmp_path), f"sqlite:///{db_path}"
 
 
@@ -67,7 +73,7 @@ def test_a_node_rebooted_mid_run_with_other_power_up_defaults_is_reconfigured_an
 ):
     mock, gw, url = run_fleet(tmp_path, power_up_node("node-r", 11, reboot_every_s=5.0,
                                                       protocol_version=protocol_version),
-                              ["node-r"], [{"node_id": "node-r"}])
+                              ["node-r"], [{"id": "node-r"}])
 
     def reboots_then_imaged():
         def check(s):
@@ -116,18 +122,8 @@ def test_a_node_rebooted_mid_run_with_other_power_up_defaults_is_reconfigured_an
 
 
 def test_another_node_on_the_port_is_surfaced_and_nothing_is_stored_and_a_clamped_length_is_surfaced(tmp_path):
-    text = scenario_node("node-x", 21) + scenario_node("node-c", 22)
-    scenario = tmp_path / "s.toml"
-    scenario.write_text(text)
-    links = tmp_path / "links"
-    mock = start_mock_nodes(scenario, links, tmp_path)
-    wait_for_links(links, ["node-x", "node-c"], mock)
-    db_path = tmp_path / "gateway.db"
-    swapped = gateway_node("pipe-a", links, url=str(links / "node-x"))
-    clamped = gateway_node("node-c", links, n_samples=9000)
-    (tmp_path / "gateway.toml").write_text(gateway_config(db_path, [swapped, clamped]))
-    gw = start_gateway(tmp_path / "gateway.toml", tmp_path)
-    url = f"sqlite:///{db_path}"
+    mock, gw, url = run_fleet(tmp_path, scenario_node("node-x", 21) + scenario_node("node-c", 22),
+                              ["node-x", "node-c"], [{"id": "pipe-a", "link": "node-x"}, {"id": "node-c", "n_samples": 9000}])
 
     def both_seen(s):
         rows = s.scalars(select(MeasurementRow).where(MeasurementRow.node_id == "node-c")).all()
