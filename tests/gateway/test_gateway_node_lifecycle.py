@@ -19,7 +19,7 @@ from gateway.record_settings import RecordSettings, comparable, configure_proble
 from gateway.watchdog import Heartbeats
 from gateway.worker import NodeWorker
 from mocknode.faults import FaultSpec
-from mocknode.scenario import PowerUpSpec, default_scenario
+from mocknode.scenario import FirmwareSpec, PowerUpSpec, default_scenario
 from mocknode.server import MockNodeServer
 from protocol.messages import ConfigureReply, ConfigureRequest, InfoReply
 
@@ -140,6 +140,27 @@ def test_the_node_map_after_a_reboot_is_made_against_the_record_that_refilled_it
         node_maps = s.scalars(select(DiMapRow).where(DiMapRow.source == MapSource.NODE).order_by(DiMapRow.id)).all()
         assert [m.baseline_measurement_id for m in node_maps] == [measurements[0].id, measurements[2].id]
         assert [m.measurement_id for m in node_maps] == [measurements[1].id, measurements[3].id]
+
+
+def test_a_node_without_on_board_di_or_a_baseline_slot_is_never_asked_for_them(tmp_path):
+    scenario = default_scenario(1).nodes[0].model_copy(update={"firmware": FirmwareSpec(capabilities=[])})
+    db = open_database(f"sqlite:///{tmp_path / 'g.db'}")
+    with MockNodeServer([scenario]) as server:
+        settings = NodeSettings(id="node-01", url=server.urls["node-01"], timeout_s=1.0,
+                                threshold={"mode": "absolute", "absolute": 0.05})
+        worker = NodeWorker(settings, db, Heartbeats(), threading.Event())
+        try:
+            for _ in range(3):
+                worker.poll_once()
+        finally:
+            worker._close()
+        refused = server.runners["node-01"].node.rejected_requests
+    with db.session() as s:
+        sources = set(s.scalars(select(DiMapRow.source)).all())
+        kinds = [m.kind.value for m in s.scalars(select(MeasurementRow).order_by(MeasurementRow.id))]
+    db.dispose()
+    assert refused == 0  # no COMPUTE_DI, READ_DI or baseline ACQUIRE it would have had to refuse
+    assert sources == {MapSource.GATEWAY} and kinds == ["baseline", "monitor", "monitor"]
 
 
 # ------------------------------------------------------------------ the pure parts
