@@ -25,6 +25,7 @@ class Violation(StrEnum):
     ACQUIRES_TWICE = "acquires_twice"  # R-CACHE-1: a resent ACQUIRE acquires again
     CACHED_CRC_STALE = "cached_crc_stale"  # R-CACHE-2: a replay sets CACHED but keeps the original CRC
     CACHES_ERRORS = "caches_errors"  # R-CACHE-3: replays an ERROR reply from the cache
+    MISSTATES_CHUNK_COUNT = "misstates_chunk_count"  # R-TRACE-1: each BULK_CHUNK states one chunk more than META
     IGNORES_CHUNK_LIST = "ignores_chunk_list"  # R-BULK-1: sends every chunk when asked for some
     DI_BOXCAR_DECIMATION = "di_boxcar_decimation"  # R-DI-2: decimates by block averages, not subsampling
     BUSY_FOREVER = "busy_forever"  # R-BUSY-1: once BUSY, it never serves a command again (until reboot)

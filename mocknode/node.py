@@ -422,7 +422,8 @@ class MockNode:
         indices = sorted(set(wanted)) if wanted else range(len(pieces))
         if any(i >= len(pieces) for i in indices):
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"chunk index beyond {len(pieces)} chunks")
-        return [BulkChunk(i, len(pieces), pieces[i]) for i in indices]
+        stated = len(pieces) + (Violation.MISSTATES_CHUNK_COUNT in self.violations)
+        return [BulkChunk(i, stated, pieces[i]) for i in indices]
 
     def _decimated(self, stored: _Stored, factor: int) -> Measurement:
         method: Decimation = "boxcar" if Violation.DI_BOXCAR_DECIMATION in self.violations else "subsample"

@@ -30,6 +30,7 @@ BROKEN_BY = {
     Violation.ACQUIRES_TWICE: "R-CACHE-1",
     Violation.CACHED_CRC_STALE: "R-CACHE-2",
     Violation.CACHES_ERRORS: "R-CACHE-3",
+    Violation.MISSTATES_CHUNK_COUNT: "R-TRACE-1",
     Violation.IGNORES_CHUNK_LIST: "R-BULK-1",
     Violation.DI_BOXCAR_DECIMATION: "R-DI-2",
     Violation.BUSY_FOREVER: "R-BUSY-1",
