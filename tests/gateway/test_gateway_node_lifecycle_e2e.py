@@ -98,7 +98,8 @@ def test_a_node_rebooted_mid_run_with_other_power_up_defaults_is_reconfigured_an
         assert node.reboots >= 2 and node.link_problems == [] and node.reported_node_id == "node-r"
         assert node.applied_settings["averaging"] == CONFIGURED[0]
         rows = s.scalars(select(MeasurementRow).where(MeasurementRow.node_id == "node-r")).all()
-        assert len({r.boot_id for r in rows}) >= 3  # records from three boots of the node
+        assert len({r.boot_id for r in rows}) >= 2  # records from before and after a reboot (a loaded machine
+        # may see the first reboot before the first record is stored)
         for row in rows:
             assert settings_of(row) in (CONFIGURED, POWER_UP), settings_of(row)
             assert load_traces(row).shape[1] == row.n_samples  # what the node said is what it sent
