@@ -181,6 +181,7 @@ def main() -> int:
         try:
             wait_until(lambda: measurement_count(fleet.url) >= 3 * len(NODES), 120, 0.5,
                        what="the gateway storing measurements")
+            fleet.put_notch_in()  # the damaged node's pipe grows its notch, as in the tests' fleet
             token = create_test_keys(fleet.url).viewer
             port = free_port()
             api = Proc([PYTHON, "-c", "import typer; from pipesentry.commands.api import api; typer.run(api)",

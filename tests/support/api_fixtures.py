@@ -2,7 +2,8 @@
 gateway polling real mock nodes, and the real API served by uvicorn on 127.0.0.1.
 
 The fleet runs once per test session (~20-40 s: two quiet nodes and one that grows a notch
-and is flagged ``damage``), then the gateway and mock nodes are stopped. Each test module
+once every node has calibrated its threshold, and is flagged ``damage``), then the gateway and
+mock nodes are stopped. Each test module
 works on its own copy of that database file, so a module that changes baselines or
 acknowledges alerts does not change what another module sees.
 """
@@ -29,28 +30,30 @@ from service.database import DatabaseGate
 from service.metrics import metrics_registry
 from service.settings import ApiSettings
 from tests.support.process_harness import (
+    PYTHON,
     Proc,
     gateway_config,
     gateway_node,
     scenario_node,
     start_gateway,
-    start_mock_nodes,
     wait_for_links,
     wait_until,
 )
 
+MOCK_ON_DEMAND = Path(__file__).with_name("mock_on_demand.py")
 QUIET_NODES = ("pipe-a", "pipe-b")
 DAMAGED_NODE = "pipe-c"
 DEFECT_AXIAL_MM = 200.0
 DEFECT_ANGLE_DEG = 90.0
-# After commissioning and threshold calibration of every node (~8 s on a busy 2-core machine).
-DEFECT_APPEARS_AT_S = 15.0
-FLEET_TIMEOUT_S = 60.0
+CALIBRATED_TIMEOUT_S = 90.0  # commissioning and threshold calibration of every node (~8 s idle)
+FLEET_TIMEOUT_S = 60.0  # then the notch is flagged and every node has its monitor measurements
 MIN_MONITORS_PER_NODE = 6
 
 def fleet_scenario() -> str:
     text = "".join(scenario_node(n, 300 + i) for i, n in enumerate(QUIET_NODES))
-    return text + scenario_node(DAMAGED_NODE, 399, defect=(DEFECT_AXIAL_MM, DEFECT_ANGLE_DEG, DEFECT_APPEARS_AT_S))
+    # The notch is in the pipe from the first acquisition after the fleet's notch file appears
+    # (tests/support/mock_on_demand.py): after calibration however long the machine makes it.
+    return text + scenario_node(DAMAGED_NODE, 399, defect=(DEFECT_AXIAL_MM, DEFECT_ANGLE_DEG, 0.0))
 
 
 def node_settings(node_id: str, link_dir: Path, interval_s: float = 0.3) -> dict:
@@ -71,6 +74,14 @@ class RunningFleet:
     def url(self) -> str:
         return f"sqlite:///{self.db_path}"
 
+    @property
+    def notch_file(self) -> Path:
+        """While this file exists the damaged node's pipe has its notch."""
+        return self.run_dir / "notch"
+
+    def put_notch_in(self) -> None:
+        self.notch_file.write_text("")
+
     def stop(self) -> None:
         try:
             assert self.gateway.terminate(timeout_s=10) == 0, self.gateway.stderr[-3000:]
@@ -90,12 +101,27 @@ def start_fleet(run_dir: Path, interval_s: float = 0.3, *, gateway_nice: int = 0
     scenario.write_text(fleet_scenario())
     links = run_dir / "links"
     ids = [*QUIET_NODES, DAMAGED_NODE]
-    mock = start_mock_nodes(scenario, links, run_dir, nice=nodes_nice)
+    mock = Proc([PYTHON, str(MOCK_ON_DEMAND), "--scenario", str(scenario), "--link-dir", str(links)], run_dir, "mock",
+                env={"PIPESENTRY_TEST_DEFECTS_FILE": str(run_dir / "notch")}, nice=nodes_nice)
     wait_for_links(links, ids, mock)
     db_path = run_dir / "gateway.db"
     config = run_dir / "gateway.toml"
     config.write_text(gateway_config(db_path, [node_settings(n, links, interval_s) for n in ids]))
     return RunningFleet(run_dir, db_path, mock, start_gateway(config, run_dir, nice=gateway_nice))
+
+
+def _node_states(url: str) -> dict[str, NodeState]:
+    database = open_database(url, upgrade=False)
+    try:
+        with database.session() as session:
+            return {n: row.state for n in (*QUIET_NODES, DAMAGED_NODE) if (row := session.get(NodeRow, n)) is not None}
+    finally:
+        database.dispose()
+
+
+def _all_calibrated(url: str) -> bool:
+    states = _node_states(url)
+    return len(states) == len(QUIET_NODES) + 1 and all(s == NodeState.OK for s in states.values())
 
 
 def _fleet_is_realistic(url: str) -> bool:
@@ -128,6 +154,9 @@ def fleet_database(base_dir: Path) -> Path:
         if "path" not in _built_fleet_db:
             fleet = start_fleet(base_dir / "fleet")
             try:
+                wait_until(lambda: _all_calibrated(fleet.url), CALIBRATED_TIMEOUT_S, 0.5,
+                           what="every node commissioned and calibrated (state ok)")
+                fleet.put_notch_in()
                 wait_until(
                     lambda: _fleet_is_realistic(fleet.url),
                     FLEET_TIMEOUT_S,
