@@ -28,7 +28,8 @@ from fullwave.record import SimulationSpec, simulate
 from imaging.formats import MeasurementFileError, load_npz, npz_bytes
 from imaging.measurement import Measurement
 
-PHYSICS_MODULES = ("absorber", "compiled", "defects", "grid", "inplane", "medium", "record", "sh", "transducers")
+COMMON_MODULES = ("absorber", "compiled", "defects", "grid", "medium", "record", "sh", "transducers")
+MODEL_MODULES = {"sh": (), "inplane": ("inplane",)}  # what each model's records depend on besides those
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -49,22 +50,20 @@ def _without_docstrings(tree: ast.AST) -> ast.AST:
     return tree
 
 
-@lru_cache(maxsize=1)
-def code_version() -> str:
-    """Hash of the physics modules' code (docstrings and comments excluded)."""
+@lru_cache(maxsize=4)
+def code_version(model: str = "sh") -> str:
+    """Hash of the code a model's records depend on (docstrings and comments excluded)."""
     digest = hashlib.sha256()
     here = Path(__file__).parent
-    for name in PHYSICS_MODULES:
-        path = here / f"{name}.py"
-        if path.exists():
-            digest.update(name.encode())
-            digest.update(ast.dump(_without_docstrings(ast.parse(path.read_text()))).encode())
+    for name in COMMON_MODULES + MODEL_MODULES.get(model, ()):
+        digest.update(name.encode())
+        digest.update(ast.dump(_without_docstrings(ast.parse((here / f"{name}.py").read_text()))).encode())
     return digest.hexdigest()[:16]
 
 
 def spec_key(spec: SimulationSpec) -> str:
     text = json.dumps(dataclasses.asdict(spec), sort_keys=True, default=str)
-    return hashlib.sha256(f"{code_version()}:{text}".encode()).hexdigest()[:24]
+    return hashlib.sha256(f"{code_version(spec.model)}:{text}".encode()).hexdigest()[:24]
 
 
 def cached_simulation(spec: SimulationSpec, cache_dir: Path | None = None) -> Measurement:

@@ -172,9 +172,29 @@ def _sh_cases() -> list[Case]:
     return cases
 
 
+TILT_DEG = 10.0  # a shear patch turned 10 deg towards the axis: L(0,2) at ~2 % of T(0,1) in the record
+
+
+def _inplane_cases() -> list[Case]:
+    """The in-plane model: mode conversion at the defects, and (tilted patches) L(0,2) from the rings.
+    The first two repeat SH cases' defects, so the two models can be compared on the same pipe."""
+    n16r, n16a = _spec("reflecting", 16, 85e3, model="inplane"), _spec("absorbing", 16, 85e3, model="inplane")
+    n16r_t = _spec("reflecting", 16, 85e3, model="inplane", tilt_deg=TILT_DEG)
+    m8r_t = _spec("reflecting", 8, 75e3, model="inplane", tilt_deg=TILT_DEG)
+    cases: list[Case] = []
+    add = cases.extend
+    add(_with_variants(_case("fw_ip_n16_reflecting_notch_200_250", n16r, (_notch(200, 250),))))
+    add(_with_variants(_case("fw_ip_n16_absorbing_notch_80_100", n16a, (_notch(80, 100),))))
+    add(_with_variants(_case("fw_ip_n16_reflecting_tilt10_notch_320_10", n16r_t, (_notch(320, 10),))))
+    add(_with_variants(_case("fw_ip_m8_reflecting_tilt10_mass_120_200", m8r_t, (_mass(120, 200),))))
+    add(_with_variants(_case("fw_ip_n16_reflecting_tilt10_fa_p04", n16r_t, (), dt_c=0.4)))
+    add(_with_variants(_case("fw_ip_m8_reflecting_tilt10_fa_m03", m8r_t, (), dt_c=-0.3)))
+    return cases
+
+
 def own_cases() -> list[Case]:
     """The project's own full-wave cases, in a stable order (names are unique)."""
-    return _sh_cases()
+    return _sh_cases() + _inplane_cases()
 
 
-__all__ = ["CASE_CELL_MM", "DECIMATED_FACTOR", "Case", "own_cases"]
+__all__ = ["CASE_CELL_MM", "DECIMATED_FACTOR", "TILT_DEG", "Case", "own_cases"]

@@ -13,6 +13,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 from fullwave.cache import CacheError, case_pair, code_version
 from fullwave.cases import CASE_CELL_MM, Case, own_cases
@@ -36,8 +37,9 @@ def select(cases: list[Case], patterns: list[str] | None) -> list[Case]:
     return chosen
 
 
-def generate(out_dir: Path, cases: list[Case], cache_dir: Path | None, log=sys.stderr) -> dict:
-    """Write every case's pair and the manifest into ``out_dir``; returns the manifest."""
+def generate(out_dir: Path, cases: list[Case], cache_dir: Path | None, log: TextIO | None = sys.stderr) -> dict:
+    """Write every case's pair and the manifest into ``out_dir``; returns the manifest. One progress
+    line per case goes to ``log`` (None: quiet)."""
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -53,8 +55,10 @@ def generate(out_dir: Path, cases: list[Case], cache_dir: Path | None, log=sys.s
         except OSError as exc:
             raise CacheError(f"cannot write into {out_dir}: {exc.strerror or exc}") from exc
         entries.append(entry)
-        print(f"[{k}/{len(cases)}] {case.name} {time.perf_counter() - started:.1f} s", file=log, flush=True)
-    manifest = {"description": f"{DESCRIPTION}; engine {code_version()}", "cases": entries}
+        if log is not None:
+            print(f"[{k}/{len(cases)}] {case.name} {time.perf_counter() - started:.1f} s", file=log, flush=True)
+    versions = ", ".join(f"{model} {code_version(model)}" for model in sorted({c.current.model for c in cases}))
+    manifest = {"description": f"{DESCRIPTION}; engine {versions}", "cases": entries}
     try:
         (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     except OSError as exc:

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from fullwave import sh
+from fullwave import inplane, sh
 from fullwave.absorber import cpml
 from fullwave.defects import Defect, apply_defects
 from fullwave.grid import Grid, make_grid
@@ -34,7 +34,7 @@ DIRECT_ARRIVAL_V = 0.0825  # the paper's 16-transducer ring, far-field plane wav
 DEFAULT_ABSORBER_MM = 80.0  # absorbing layer beyond each absorbing end (~2 wavelengths at 75-85 kHz)
 
 
-ENGINES = {"sh": sh}
+ENGINES = {"sh": sh, "inplane": inplane}
 
 
 class SimulationError(ValueError):

@@ -58,6 +58,9 @@ def test_the_case_list_covers_what_the_imaging_must_be_judged_on():
     assert any(e["noisy"] for e in entries) and any(e["decimation"] == DECIMATED_FACTOR for e in entries)
     assert sum(1 for e in entries if not e["defects"]) >= 10  # defect-free pairs for false alarms
     assert len({e["tx_axial_mm"] for e in entries}) >= 2  # rings off the pipe's middle too
+    in_plane = [e for e in entries if e["model"] == "inplane"]
+    assert any(e["tilt_deg"] > 0 for e in in_plane) and any(e["tilt_deg"] == 0 and e["defects"] for e in in_plane)
+    assert any(not e["defects"] for e in in_plane)  # mode conversion must not be mistaken for damage either
 
 
 def test_noisy_pair_has_noise_40_db_below_the_direct_arrival_and_a_10_bit_adc():
@@ -91,6 +94,11 @@ def test_simulations_are_cached_by_spec_and_a_damaged_entry_is_recomputed(tmp_pa
     files[0].write_bytes(b"not a zip file")
     np.testing.assert_array_equal(cache.cached_simulation(SMALL, tmp_path).traces, first.traces)
     assert load_measurement(files[0]).n_samples == SMALL.n_samples
+
+
+def test_each_models_cache_key_follows_only_the_code_it_runs():
+    assert cache.code_version("sh") != cache.code_version("inplane")
+    assert "inplane" not in cache.COMMON_MODULES  # an in-plane change keeps the SH model's records
 
 
 def test_code_version_ignores_docstrings_and_comments_but_not_arithmetic():

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import hilbert
 
-from fullwave import sh
+from fullwave import inplane, sh
 from fullwave.absorber import cpml
 from fullwave.defects import apply_defects
 from fullwave.grid import Grid, make_grid, rectangle_coverage
@@ -92,3 +92,59 @@ def window(t_s: np.ndarray, x: np.ndarray, lo_s: float, hi_s: float) -> np.ndarr
 
 def pulse_s(frequency_hz: float = 85e3, cycles: int = 5) -> float:
     return cycles / frequency_hz
+
+
+def band(grid: Grid, z_mm: float, width_mm: float, on_faces: bool = False, s_offset: float = 0.0) -> np.ndarray:
+    """``ring_band`` on one of the in-plane model's staggered grids."""
+    half = width_mm * MM / 2
+    return rectangle_coverage(grid, z_mm * MM - half, z_mm * MM + half, 0.0, grid.circumference_m, on_faces,
+                              s_offset)
+
+
+def box(grid: Grid, z_mm: float, s_mm: float, size_mm: float, on_faces: bool = False,
+        s_offset: float = 0.0) -> np.ndarray:
+    half = size_mm * MM / 2
+    return rectangle_coverage(grid, z_mm * MM - half, z_mm * MM + half, s_mm * MM - half, s_mm * MM + half,
+                              on_faces, s_offset)
+
+
+@dataclass
+class InplaneRun:
+    t_s: np.ndarray
+    out: np.ndarray  # [n_steps, n_rx]
+    grid: Grid
+    op: inplane.InplaneOperator
+    state: inplane.InplaneState
+    dt_s: float
+
+
+def inplane_transducers(grid: Grid, source_z: np.ndarray | None, source_s: np.ndarray | None,
+                        receivers: list[tuple[np.ndarray | None, np.ndarray | None]]) -> inplane.Transducers:
+    """Traction patterns on the v_z grid (faces) and the v_s grid (cells, half a cell on in s), None for
+    no traction along that axis; each receiver averages (axial coverage, circumferential coverage) and
+    adds the two (None: it does not sense that axis)."""
+    faces, cells = (grid.nz + 1, grid.ns), (grid.nz, grid.ns)
+    return inplane.Transducers(
+        forcing_weights(source_z if source_z is not None else np.zeros(faces)),
+        forcing_weights(source_s if source_s is not None else np.zeros(cells)),
+        _sensing([cz for cz, _ in receivers]), _sensing([cs for _, cs in receivers]), len(receivers))
+
+
+def _sensing(coverages: list[np.ndarray | None]) -> PatchWeights:
+    parts = [(row, averaging_weights([c])) for row, c in enumerate(coverages) if c is not None]
+    if not parts:
+        return PatchWeights(np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
+    return PatchWeights(np.concatenate([w.index for _, w in parts]), np.concatenate([w.weight for _, w in parts]),
+                        np.concatenate([np.full(w.index.size, row) for row, w in parts]))
+
+
+def inplane_run(medium: Medium, transducers: inplane.Transducers, duration_s: float, frequency_hz: float = 85e3,
+                dtype=np.float64) -> InplaneRun:
+    grid = medium.grid
+    c = medium.max_velocity_m_s
+    dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, c, 0.9)
+    op = inplane.inplane_operator(medium, dt, cpml(grid, c, frequency_hz, dt), dtype)
+    state = inplane.InplaneState.zeros(grid.nz, grid.ns, dtype)
+    n = int(duration_s / dt)
+    out = inplane.run(op, state, tone_burst(np.arange(n) * dt, frequency_hz, 5), transducers)
+    return InplaneRun((np.arange(n) + 0.5) * dt, out, grid, op, state, dt)
