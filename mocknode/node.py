@@ -26,6 +26,7 @@ from imaging.measurement import Measurement, MeasurementError
 from mocknode import physics
 from mocknode.faults import Violation
 from mocknode.onboard_di import Decimation, GridRefused, decimated, onboard_map, requested_grid
+from mocknode.recorded import RecordError, acquire_recorded, load_recorded_pipe
 from mocknode.scenario import NodeScenario
 from mocknode.violations import StaleCrcFrame, lenient_decode
 from protocol.bulk import n_chunks_for, split_chunks
@@ -113,6 +114,10 @@ class MockNode:
             raise NodeSetupError(f"{scenario.node_id}: {n_rx} receivers exceed the {MAX_CHANNELS}-bit channel mask")
         if len(scenario.node_id.encode("utf-8")) > 32:
             raise NodeSetupError(f"node id {scenario.node_id!r} is longer than 32 bytes")
+        try:  # a node replaying full-wave records reads them once, here
+            self._recorded = load_recorded_pipe(scenario) if scenario.fullwave is not None else None
+        except RecordError as exc:
+            raise NodeSetupError(str(exc)) from exc
         self.scenario = scenario
         self.clock = clock
         self._epoch = clock()  # scenario time 0: defects grow and temperature drifts from here
@@ -315,7 +320,7 @@ class MockNode:
         return [InfoReply(
             scn.node_id, *FIRMWARE_VERSION, version, self.capabilities, self.boot_id, MAX_FRAME_BYTES,
             CHUNK_BYTES, len(rx), scn.acquisition.adc_bits, scn.acquisition.decimation, MAX_MEASUREMENTS,
-            float(scn.acquisition.fs_hz), scn.max_samples, float(scn.rings.tx_rx_distance_mm),
+            float(scn.acquisition.fs_hz), self._max_samples(), float(scn.rings.tx_rx_distance_mm),
             float(scn.pipe.outer_circumference_mm), float(scn.pipe.velocity_m_s), len(tx), len(rx), tx, rx,
             self.version_min, min(self.version_max, 255),
         )]
@@ -323,9 +328,16 @@ class MockNode:
     def _info_request(self, message: InfoRequest) -> list[Message]:
         return self._info(self.version_max)  # a version-1 node: INFO in its own version
 
+    def _max_samples(self) -> int:
+        """The longest record CONFIGURE accepts: the firmware's limit; a replayed record, no longer than it was simulated."""
+        if self._recorded is not None:
+            return min(self.scenario.max_samples, self._recorded.n_samples)
+        return self.scenario.max_samples
+
     def _status(self, message: StatusRequest) -> list[Message]:
         last = next(reversed(self._measurements.values()), None)
-        temperature = last.acquisition.temperature_c if last else self.scenario.temperature.mean_c
+        idle = self._recorded.baseline.temperature_c if self._recorded else self.scenario.temperature.mean_c
+        temperature = last.acquisition.temperature_c if last else idle
         return [StatusReply(
             int(self.clock() - self._boot_time), self.boot_id, float(temperature), SUPPLY_V,
             self.crc_errors, self.framing_errors, self.rejected_requests, self._baseline_id,
@@ -338,7 +350,7 @@ class MockNode:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "excitation_hz outside 1 kHz..1 MHz")
         if not 1 <= message.cycles <= 50:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "cycles outside 1..50")
-        averaging, n_samples, max_samples = message.averaging, message.n_samples, self.scenario.max_samples
+        averaging, n_samples, max_samples = message.averaging, message.n_samples, self._max_samples()
         if Violation.CLAMPS_SETTINGS in self.violations:
             averaging, n_samples = min(averaging, 10000), min(n_samples, max_samples)
         if not 1 <= averaging <= 10000:
@@ -347,6 +359,11 @@ class MockNode:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask must select channels of 0..{n_rx - 1}")
         if not 2 <= n_samples <= max_samples:
             raise _Refused(ErrorCode.BAD_ARGUMENT, f"n_samples outside 2..{max_samples}")
+        recorded = self._recorded.baseline if self._recorded is not None else None
+        if recorded is not None and not (math.isclose(message.excitation_hz, recorded.excitation_hz, rel_tol=1e-6)
+                                         and message.cycles == recorded.cycles):
+            raise _Refused(ErrorCode.BAD_ARGUMENT, f"this node replays full-wave records of {recorded.excitation_hz:g} Hz, "
+                                                   f"{recorded.cycles} cycles only")
         self.config = ConfigureReply(float(np.float32(message.excitation_hz)), message.cycles, averaging,
                                      message.channel_mask, n_samples)
         return [self.config]
@@ -362,7 +379,11 @@ class MockNode:
         if message.as_baseline and not self.capabilities & CAP_BASELINE_SLOT:
             raise _Refused(ErrorCode.BAD_ARGUMENT, "no baseline slot (capability BASELINE_SLOT absent)")
         scn = self._configured_scenario()
-        acquisition = physics.acquire(scn, self.clock() - self._epoch, self._rng)
+        elapsed_s = self.clock() - self._epoch
+        if self._recorded is not None:
+            acquisition = acquire_recorded(scn, self._recorded, elapsed_s, self._rng)
+        else:
+            acquisition = physics.acquire(scn, elapsed_s, self._rng)
         rows = [i for i in range(len(scn.rings.rx_angles)) if self.config.channel_mask >> i & 1]
         full = acquisition.to_measurement(scn)
         if full.n_rx != len(rows):  # keep only the enabled receivers, as the FPGA does

@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from mocknode.faults import FaultSpec
 
@@ -312,6 +312,27 @@ class PowerUpSpec(_Strict):
     n_samples: int | None = Field(None, ge=2, le=1_000_000)
 
 
+class FullwaveRecordsSpec(_Strict):
+    """Serve precomputed full-wave records (fullwave/, docs/fullwave.md) instead of the ray physics.
+
+    Until ``defect_appears_at_s`` every acquisition replays the ``baseline`` record, from then on the
+    ``current`` one; the node's own receiver chain (receiver faults, noise, ADC) is applied on top, a
+    fresh draw each time. The records fix the excitation, the rings and the temperature (each
+    record's own); the pipe's ``defects``, ``temperature`` and ``modes`` are not simulated. A relative
+    path is relative to the scenario file's folder.
+    """
+
+    baseline: Path
+    current: Path
+    defect_appears_at_s: float = Field(0.0, ge=0.0, description="scenario time at which the current record starts")
+
+    @field_validator("baseline", "current")
+    @classmethod
+    def _relative_to_the_scenario(cls, value: Path, info: ValidationInfo) -> Path:
+        base = (info.context or {}).get("base_dir")
+        return value if value.is_absolute() or base is None else Path(base) / value
+
+
 class NodeScenario(_Strict):
     """Everything needed to simulate one node's acquisitions over elapsed time."""
 
@@ -333,6 +354,7 @@ class NodeScenario(_Strict):
     def max_samples(self) -> int:
         """The longest record the node accepts: the firmware's limit, never below its own defaults."""
         return max(self.firmware.max_samples, self.acquisition.n_samples, self.power_up.n_samples or 0)
+    fullwave: FullwaveRecordsSpec | None = None
 
     @model_validator(mode="after")
     def _geometry_fits(self) -> NodeScenario:
@@ -414,10 +436,11 @@ def _error_key(exc: ValidationError) -> tuple[str | None, str]:
     return (".".join(parts) or None), first["msg"]
 
 
-def scenario_from_dict(data: dict) -> Scenario:
-    """Validate a parsed scenario document; raises ScenarioError naming the first bad key."""
+def scenario_from_dict(data: dict, base_dir: Path | None = None) -> Scenario:
+    """Validate a parsed scenario document; raises ScenarioError naming the first bad key.
+    Relative file paths in it (full-wave records) are taken from ``base_dir``."""
     try:
-        return Scenario.model_validate(data)
+        return Scenario.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         key, msg = _error_key(exc)
         raise ScenarioError(msg, key=key) from exc
@@ -447,7 +470,7 @@ def load_scenario(path: str | Path) -> Scenario:
             raise ScenarioError(f"invalid TOML: {exc}", key=str(path)) from exc
     if not isinstance(data, dict):
         raise ScenarioError("a scenario must be a table with a 'nodes' list", key=str(path))
-    return scenario_from_dict(data)
+    return scenario_from_dict(data, base_dir=path.parent)
 
 
 DEMO_NOTCH_APPEARS_S = 120.0
@@ -482,6 +505,7 @@ __all__ = [
     "DefectSpec",
     "ExcitationSpec",
     "FirmwareSpec",
+    "FullwaveRecordsSpec",
     "GrowthSpec",
     "MassSize",
     "ModeConversion",
