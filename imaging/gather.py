@@ -20,9 +20,10 @@ within an ulp) (imaging/multipath.py
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
+
+from imaging.jit import njit, numba_module
 
 
 def accumulate_numpy(out: np.ndarray, row: np.ndarray, groups: np.ndarray, idx: np.ndarray, w: np.ndarray,
@@ -57,25 +58,8 @@ def _accumulate_loops(out, row, groups, idx, w, roll):  # pragma: no cover - com
                 out[g, i, j - split] += w[p, base + j] * row[idx[p, base + j]]
 
 
-def _numba():
-    if os.environ.get("PIPESENTRY_NUMBA", "1") == "0":
-        return None
-    try:
-        import numba
-    except ImportError:
-        return None
-    return numba
-
-
-def _njit(numba, signatures, function):
-    try:
-        return numba.njit(signatures, cache=True, nogil=True)(function)
-    except RuntimeError:  # no writable cache location: compile in memory instead
-        return numba.njit(signatures, cache=False, nogil=True)(function)
-
-
 def _compile():
-    numba = _numba()
+    numba = numba_module()
     if numba is None:
         return None
     t = numba.types
@@ -85,7 +69,7 @@ def _compile():
         t.void(t.complex64[:, :, ::1], t.complex64[::1], *tables),
         t.void(t.float32[:, :, ::1], t.float32[::1], *tables),
     ]
-    return _njit(numba, signatures, _accumulate_loops)
+    return njit(numba, signatures, _accumulate_loops)
 
 
 accumulate_compiled = _compile()
@@ -141,7 +125,7 @@ def _local_loops(feature, rows, rx_angles_deg, axial_mm, angle_deg, offset, sign
 
 
 def _compile_local():
-    numba = _numba()
+    numba = numba_module()
     if numba is None:
         return None
     t = numba.types
@@ -152,7 +136,7 @@ def _compile_local():
         t.void(t.Array(t.complex128, 2, "C", readonly=True), *tail, t.complex128[:, :, ::1], t.float64[:, :, ::1]),
         t.void(t.Array(t.float64, 2, "C", readonly=True), *tail, t.float64[:, :, ::1], t.float64[:, :, ::1]),
     ]
-    return _njit(numba, signatures, _local_loops)
+    return njit(numba, signatures, _local_loops)
 
 
 local_sums_compiled = _compile_local()
