@@ -24,9 +24,9 @@ from scipy.interpolate import CubicSpline
 from fullwave import inplane, sh
 from fullwave.absorber import cpml
 from fullwave.defects import Defect, apply_defects
-from fullwave.grid import Grid, make_grid
+from fullwave.grid import Grid, GridError, make_grid
 from fullwave.medium import Medium, MediumError, Steel, modulus_scale, uniform_medium
-from fullwave.transducers import RingLayout, plane_wave_velocity_m_s, tone_burst
+from fullwave.transducers import RingLayout, TransducerError, plane_wave_velocity_m_s, tone_burst
 from imaging.measurement import DEFAULT_VELOCITY_M_S, Measurement
 
 TRACTION_PA = 1.0  # Tx traction amplitude; the system is linear, volts are set by the receivers' gain
@@ -123,22 +123,20 @@ def simulate_velocities(spec: SimulationSpec, dtype: type = np.float32) -> tuple
     """Receiver outputs before the gain: (times s [n_steps + 1], along-direction velocity m/s
     [n_steps + 1, n_rx]), starting with the quiet pipe at t = 0."""
     _validate(spec)
-    try:
-        grid = build_grid(spec)
-        medium = build_medium(spec, grid)
-    except MediumError as exc:
-        raise SimulationError(str(exc)) from exc
     if spec.model not in ENGINES:
         raise SimulationError(f"unknown model {spec.model!r}: one of {', '.join(ENGINES)}")
     engine = ENGINES[spec.model]
-    velocity = medium.max_velocity_m_s if spec.model == "inplane" else medium.max_shear_velocity_m_s
-    dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, velocity, spec.courant)
-    absorber = cpml(grid, velocity, spec.excitation_hz, dt)
-    record_end_s = spec.n_samples / spec.fs_hz
-    n_steps = math.ceil(record_end_s / dt) + 4
-    axial, circumferential = spec.rings.direction
-    amplitude = TRACTION_PA * tone_burst(np.arange(n_steps) * dt, spec.excitation_hz, spec.cycles)
-    out = engine.simulate(medium, dt, absorber, spec.rings, amplitude, (axial, circumferential), dtype)
+    try:
+        grid = build_grid(spec)
+        medium = build_medium(spec, grid)
+        velocity = medium.max_velocity_m_s if spec.model == "inplane" else medium.max_shear_velocity_m_s
+        dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, velocity, spec.courant)
+        n_steps = math.ceil(spec.n_samples / spec.fs_hz / dt) + 4
+        amplitude = TRACTION_PA * tone_burst(np.arange(n_steps) * dt, spec.excitation_hz, spec.cycles)
+        out = engine.simulate(medium, dt, cpml(grid, velocity, spec.excitation_hz, dt), spec.rings, amplitude,
+                              spec.rings.direction, dtype)
+    except (GridError, MediumError, TransducerError) as exc:
+        raise SimulationError(str(exc)) from exc
     times = np.concatenate([[0.0], (np.arange(n_steps) + 0.5) * dt])
     return times, np.vstack([np.zeros((1, out.shape[1])), out])
 

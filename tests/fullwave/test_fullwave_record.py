@@ -77,7 +77,11 @@ def test_the_wave_travels_the_mid_wall_circumference_unless_told_otherwise():
     SMALL.with_changes(courant=1.5),
     SMALL.with_changes(model="fem"),
     SMALL.with_changes(temperature_c=1e5),
-], ids=["rx-beyond-end", "notch-outside", "notch-through-wall", "negative-mass", "unstable", "model", "temperature"])
+    SMALL.with_changes(rings=RingLayout(tx_axial_mm=5.0, tx_rx_distance_mm=200.0)),  # Tx patches off the end
+    SMALL.with_changes(rings=RingLayout(tx_axial_mm=50.0, tx_rx_distance_mm=200.0, n_transducers=30)),  # overlap
+    SMALL.with_changes(cell_mm=-1.0),
+], ids=["rx-beyond-end", "notch-outside", "notch-through-wall", "negative-mass", "unstable", "model", "temperature",
+        "tx-off-the-end", "patches-overlap", "cell"])
 def test_impossible_specs_are_refused_with_a_simulation_error(spec):
     with pytest.raises(SimulationError):
         simulate(spec)
