@@ -1,4 +1,7 @@
-"""Numerical dispersion of the staggered leapfrog scheme (second order in space and time).
+"""The staggered leapfrog scheme's time step and numerical dispersion (second order in space and time).
+
+Both kernels step at ``courant`` times the stability limit c dt sqrt(1/dz^2 + 1/ds^2) = 1 of
+their fastest wave.
 
 A plane wave exp(i (k.x - omega t)) on the grid obeys
 
@@ -13,6 +16,11 @@ from __future__ import annotations
 import math
 
 from scipy.optimize import brentq
+
+
+def stable_dt_s(dz_m: float, ds_m: float, velocity_m_s: float, courant: float) -> float:
+    """The time step at ``courant`` times the 2-D leapfrog limit 1 / (c sqrt(1/dz^2 + 1/ds^2))."""
+    return courant / (velocity_m_s * math.sqrt(1 / dz_m**2 + 1 / ds_m**2))
 
 
 def _omega(k: float, c: float, dz: float, ds: float, dt: float, cos_a: float, sin_a: float) -> float:
@@ -35,4 +43,4 @@ def numerical_velocities(frequency_hz: float, velocity_m_s: float, dz_m: float, 
     return omega / k, group
 
 
-__all__ = ["numerical_velocities"]
+__all__ = ["numerical_velocities", "stable_dt_s"]

@@ -30,7 +30,6 @@ import numpy as np
 from fullwave.absorber import Cpml
 from fullwave.compiled import jit, kernel_array
 from fullwave.medium import Medium, harmonic_mean
-from fullwave.sh import row_sparse
 from fullwave.transducers import PatchWeights, RingLayout, averaging_weights, rx_weights, tx_weights
 
 
@@ -251,8 +250,8 @@ def run(op: InplaneOperator, state: InplaneState, amplitude: np.ndarray, t: Tran
             np.add.at(out[n], t.receiver_z.owner, t.receiver_z.weight * state.vz.ravel()[t.receiver_z.index])
             np.add.at(out[n], t.receiver_s.owner, t.receiver_s.weight * state.vs.ravel()[t.receiver_s.index])
         return out
-    zptr, zcol, zw = row_sparse(t.source_z.index, t.source_z.weight, nz + 1, ns)
-    sptr, scol, sw = row_sparse(t.source_s.index, t.source_s.weight, nz, ns)
+    zptr, zcol, zw = t.source_z.by_row(nz + 1, ns)
+    sptr, scol, sw = t.source_s.by_row(nz, ns)
     p = op.cpml
     _run_compiled(op.dt_over_mass_z, op.dt_over_mass_s, op.a_h, op.b_h, op.g_h, dtype.type(op.inv_dz),
                   dtype.type(op.inv_ds), p.a_cell, p.b_cell, p.a_face, p.b_face, state.vz, state.vs, state.nzz,

@@ -24,6 +24,7 @@ from scipy.interpolate import CubicSpline
 from fullwave import inplane, sh
 from fullwave.absorber import cpml
 from fullwave.defects import Defect, apply_defects
+from fullwave.dispersion import stable_dt_s
 from fullwave.grid import Grid, GridError, make_grid
 from fullwave.medium import Medium, MediumError, Steel, modulus_scale, uniform_medium
 from fullwave.transducers import RingLayout, TransducerError, plane_wave_velocity_m_s, tone_burst
@@ -130,7 +131,7 @@ def simulate_velocities(spec: SimulationSpec, dtype: type = np.float32) -> tuple
         grid = build_grid(spec)
         medium = build_medium(spec, grid)
         velocity = medium.max_velocity_m_s if spec.model == "inplane" else medium.max_shear_velocity_m_s
-        dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, velocity, spec.courant)
+        dt = stable_dt_s(grid.dz_m, grid.ds_m, velocity, spec.courant)
         n_steps = math.ceil(spec.n_samples / spec.fs_hz / dt) + 4
         amplitude = TRACTION_PA * tone_burst(np.arange(n_steps) * dt, spec.excitation_hz, spec.cycles)
         out = engine.simulate(medium, dt, cpml(grid, velocity, spec.excitation_hz, dt), spec.rings, amplitude,

@@ -73,11 +73,6 @@ def sh_operator(medium: Medium, dt_s: float, cpml: Cpml, dtype: type = np.float3
                       kernel_array(dt_s * ks, dtype), 1.0 / grid.dz_m, 1.0 / grid.ds_m, cpml.astype(dtype), dt_s)
 
 
-def stable_dt_s(dz_m: float, ds_m: float, velocity_m_s: float, courant: float) -> float:
-    """The time step at ``courant`` times the 2-D leapfrog limit 1 / (c sqrt(1/dz^2 + 1/ds^2))."""
-    return courant / (velocity_m_s * np.sqrt(1 / dz_m**2 + 1 / ds_m**2))
-
-
 def step_numpy(op: ShOperator, state: ShState, force: np.ndarray) -> None:
     """One leapfrog step in place; ``force`` [nz, ns] is the traction at step n (Pa)."""
     v, tz, ts = state.v, state.tau_z, state.tau_s
@@ -140,14 +135,6 @@ def _run_loops(dt_over_mass, kz, ks, inv_dz, inv_ds, a_c, b_c, a_f, b_f, v, tz, 
             out[n, rx_owner[k]] += rx_weight[k] * vf[rx_index[k]]
 
 
-def row_sparse(index: np.ndarray, weight: np.ndarray, nz: int, ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flat cell indices as rows: (row pointers [nz + 1], columns, weights), sorted by row."""
-    order = np.argsort(index, kind="stable")
-    index, weight = index[order], weight[order]
-    ptr = np.searchsorted(index // ns, np.arange(nz + 1)).astype(np.int64)
-    return ptr, (index % ns).astype(np.int64), weight
-
-
 _run_compiled = jit(_run_loops)
 
 
@@ -168,7 +155,7 @@ def run(op: ShOperator, state: ShState, amplitude: np.ndarray, source: PatchWeig
             np.add.at(out[n], receivers.owner, receivers.weight * state.v.ravel()[receivers.index])
         return out
     p = op.cpml
-    ptr, col, weight = row_sparse(source.index, source.weight, *state.v.shape)
+    ptr, col, weight = source.by_row(*state.v.shape)
     _run_compiled(op.dt_over_mass, op.kz, op.ks, dtype.type(op.inv_dz), dtype.type(op.inv_ds), p.a_cell, p.b_cell,
                   p.a_face, p.b_face, state.v, state.tau_z, state.tau_s, state.psi_v, state.psi_tau, amplitude,
                   ptr, col, weight.astype(dtype), receivers.index.astype(np.int64),
@@ -207,4 +194,4 @@ def simulate(medium: Medium, dt_s: float, absorber: Cpml, rings: RingLayout, amp
     return circumferential * out
 
 
-__all__ = ["ShOperator", "ShState", "energy_j", "run", "sh_operator", "simulate", "stable_dt_s", "step_numpy"]
+__all__ = ["ShOperator", "ShState", "energy_j", "run", "sh_operator", "simulate", "step_numpy"]

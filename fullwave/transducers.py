@@ -88,6 +88,14 @@ class PatchWeights:
     weight: np.ndarray
     owner: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # receiver row
 
+    def by_row(self, nz: int, ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The weights of a [nz, ns] grid row by row: (row pointers [nz + 1], columns, weights), for a
+        kernel that adds them while it passes each row."""
+        order = np.argsort(self.index, kind="stable")
+        index, weight = self.index[order], self.weight[order]
+        ptr = np.searchsorted(index // ns, np.arange(nz + 1)).astype(np.int64)
+        return ptr, (index % ns).astype(np.int64), weight
+
 
 def _patch(grid: Grid, axial_mm: float, angle_deg: float, layout: RingLayout, on_faces: bool,
            s_offset: float) -> np.ndarray:

@@ -7,6 +7,7 @@ import pytest
 from fullwave import sh
 from fullwave.absorber import cpml
 from fullwave.defects import Mass, Notch
+from fullwave.dispersion import stable_dt_s
 from fullwave.transducers import averaging_weights, forcing_weights, tone_burst
 from tests.support.fullwave_setups import patch, wall
 
@@ -15,7 +16,7 @@ DEFECTS = (Notch(axial_mm=100.0, angle_deg=90.0), Mass(axial_mm=60.0, angle_deg=
 
 def _operator(medium, dtype):
     grid = medium.grid
-    dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, medium.max_shear_velocity_m_s, 0.9)
+    dt = stable_dt_s(grid.dz_m, grid.ds_m, medium.max_shear_velocity_m_s, 0.9)
     return sh.sh_operator(medium, dt, cpml(grid, medium.max_shear_velocity_m_s, 85e3, dt), dtype), dt
 
 

@@ -14,6 +14,7 @@ from scipy.signal import hilbert
 from fullwave import inplane, sh
 from fullwave.absorber import cpml
 from fullwave.defects import apply_defects
+from fullwave.dispersion import stable_dt_s
 from fullwave.grid import Grid, make_grid, rectangle_coverage
 from fullwave.medium import Medium, Steel, modulus_scale, uniform_medium
 from fullwave.transducers import PatchWeights, averaging_weights, forcing_weights, tone_burst
@@ -57,7 +58,7 @@ def run(medium: Medium, source: PatchWeights, receivers: PatchWeights, n_rx: int
         frequency_hz: float = 85e3, dtype=np.float64, courant: float = 0.9) -> Run:
     grid = medium.grid
     c = medium.max_shear_velocity_m_s
-    dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, c, courant)
+    dt = stable_dt_s(grid.dz_m, grid.ds_m, c, courant)
     op = sh.sh_operator(medium, dt, cpml(grid, c, frequency_hz, dt), dtype)
     state = sh.ShState.zeros(grid.nz, grid.ns, dtype)
     n = int(duration_s / dt)
@@ -142,7 +143,7 @@ def inplane_run(medium: Medium, transducers: inplane.Transducers, duration_s: fl
                 dtype=np.float64) -> InplaneRun:
     grid = medium.grid
     c = medium.max_velocity_m_s
-    dt = sh.stable_dt_s(grid.dz_m, grid.ds_m, c, 0.9)
+    dt = stable_dt_s(grid.dz_m, grid.ds_m, c, 0.9)
     op = inplane.inplane_operator(medium, dt, cpml(grid, c, frequency_hz, dt), dtype)
     state = inplane.InplaneState.zeros(grid.nz, grid.ns, dtype)
     n = int(duration_s / dt)
