@@ -21,8 +21,12 @@ WEBHOOK_SECRET_PREFIX = "whsec_"
 _SEVERITY_RANK = {Severity.INFO: 0, Severity.WARNING: 1, Severity.CRITICAL: 2}
 
 
+# Durations beyond a week are typos (`backoff_cap_s = 1e300` would overflow the wait that uses it).
+MAX_WAIT_S = 7 * 86_400.0
+
+
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # inf passes gt=0, then breaks a timer
 
 
 class SinkSettings(_Section):
@@ -31,9 +35,9 @@ class SinkSettings(_Section):
     name: str = Field(min_length=1, max_length=64, pattern=SINK_NAME_PATTERN)
     timeout_s: float = Field(5.0, gt=0, le=120, description="whole-request timeout of one attempt")
     max_attempts: int = Field(10, ge=1, le=100, description="tries before a delivery is marked dead")
-    backoff_base_s: float = Field(2.0, gt=0, description="first retry waits up to this long (full jitter)")
-    backoff_cap_s: float = Field(600.0, gt=0, description="no retry waits longer (unless Retry-After says so)")
-    retry_after_max_s: float = Field(3600.0, gt=0, description="a receiver's Retry-After is honoured up to this")
+    backoff_base_s: float = Field(2.0, gt=0, le=MAX_WAIT_S, description="first retry waits up to this long (full jitter)")
+    backoff_cap_s: float = Field(600.0, gt=0, le=MAX_WAIT_S, description="no retry waits longer (unless Retry-After says so)")
+    retry_after_max_s: float = Field(3600.0, gt=0, le=MAX_WAIT_S, description="a receiver's Retry-After is honoured up to this")
     min_severity: Severity = Field(Severity.INFO, description="events routed below this severity skip the sink")
 
     @model_validator(mode="after")
@@ -65,7 +69,7 @@ class AlertmanagerSinkSettings(SinkSettings):
 
     type: Literal["alertmanager"] = "alertmanager"
     url: str = Field(pattern=r"^https?://", description="Alertmanager base URL, e.g. http://127.0.0.1:9093")
-    resend_interval_s: float = Field(60.0, gt=0, description="active alerts are re-sent this often")
+    resend_interval_s: float = Field(60.0, gt=0, le=MAX_WAIT_S, description="active alerts are re-sent this often")
     labels: dict[str, str] = Field(
         default_factory=dict,
         description="added to every alert, e.g. {site = \"site-1\"} for a central Alertmanager's routes and "
@@ -130,7 +134,7 @@ class AlertingSettings(_Section):
     api_base_url: str = Field(
         "http://127.0.0.1:8000", pattern=r"^https?://", description="links in alerts point here"
     )
-    offline_after_s: float = Field(600.0, gt=0, description="a node unseen this long raises node_offline")
+    offline_after_s: float = Field(600.0, gt=0, le=MAX_WAIT_S, description="a node unseen this long raises node_offline")
     poll_interval_s: float = Field(1.0, gt=0, le=60, description="how often an idle sink looks at the outbox")
     sensor_fault_count: int = Field(
         2, ge=1, le=100,

@@ -2,19 +2,31 @@
 
 Environment variables use ``__`` between levels, e.g. ``PIPESENTRY_DATABASE__URL`` or
 ``PIPESENTRY_LOGGING__JSON=true``. A config error names the offending key and the daemon does
-not start half-configured.
+not start half-configured. Validation is everything a start needs and opens nothing (no port,
+no database): ``pipesentry gateway --check`` is exactly :func:`load_settings`.
 """
 from __future__ import annotations
 
+import importlib.util
+import os
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, SettingsError
 
 from alerts.config import AlertingSettings
+from db.urls import DatabaseUrlError, check_database_url
 from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH
+
+# Upper bounds of the durations: far beyond any sensible setting, and far below what a timer can
+# wait (threading's TIMEOUT_MAX): `interval_s = 1e300` is a typo, not a schedule.
+DAY_S = 86_400.0
+MAX_INTERVAL_S = 7 * DAY_S
+MAX_TIMEOUT_S = 600.0
+# pyserial URL schemes it has a handler for (serial.urlhandler.protocol_<scheme>); a path has none.
+_PYSERIAL_HANDLERS = "serial.urlhandler.protocol_"
 
 
 class ConfigError(ValueError):
@@ -22,17 +34,30 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # No inf or nan anywhere: a duration of inf passes `gt=0` and then kills the thread that waits on it.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class DatabaseSettings(_Section):
-    url: str = "sqlite:///pipesentry.db"
+    url: str = Field(
+        "sqlite:///pipesentry.db",
+        description="sqlite:///relative.db, sqlite:////absolute.db or postgresql+psycopg://user@host/db",
+    )
+
+    @field_validator("url")
+    @classmethod
+    def _usable_url(cls, value: str) -> str:
+        try:
+            check_database_url(value, writable=True)  # the gateway creates the file and its WAL files
+        except DatabaseUrlError as exc:
+            raise ValueError(str(exc)) from None
+        return value
 
 
 class RetentionSettings(_Section):
-    raw_traces_days: float = Field(365.0, gt=0, description="raw traces older than this are pruned")
+    raw_traces_days: float = Field(365.0, gt=0, le=36_500, description="raw traces older than this are pruned")
     prune_batch: int = Field(50, ge=1, le=10_000, description="measurements pruned per transaction")
-    prune_every_s: float = Field(3600.0, gt=0)
+    prune_every_s: float = Field(3600.0, gt=0, le=MAX_INTERVAL_S)
 
 
 class LoggingSettings(_Section):
@@ -54,10 +79,10 @@ class ThresholdSettings(_Section):
     mode: Literal["absolute", "calibrated"] = "calibrated"
     absolute: float | None = Field(None, gt=0, description="threshold when mode = absolute")
     calibration_count: int = Field(
-        10, ge=5, description="K baseline-condition measurements for mode = calibrated (fewer cannot bound a rare tail)"
+        10, ge=5, le=1000, description="K baseline-condition measurements for mode = calibrated (fewer cannot bound a rare tail)"
     )
     false_alarm_rate: float = Field(1e-3, gt=0, lt=0.5, description="per measurement, for the calibrated bound")
-    hysteresis_count: int = Field(3, ge=1, description="M consecutive exceedances to flag damage, M below to clear")
+    hysteresis_count: int = Field(3, ge=1, le=100, description="M consecutive exceedances to flag damage, M below to clear")
     floor: float | None = Field(
         None,
         ge=0,
@@ -96,10 +121,10 @@ class ImagingSettings(_Section):
     )
     library_size: int = Field(24, ge=1, le=256, description="baselines kept in the node's OBS library")
     library_temperature_step_c: float = Field(
-        2.0, ge=0, description="a healthy measurement this far (degC) from every library baseline joins it; 0: off"
+        2.0, ge=0, le=100, description="a healthy measurement this far (degC) from every library baseline joins it; 0: off"
     )
     library_growth_days: float = Field(
-        30.0, gt=0, description="the library grows only this long after the active baseline was set"
+        30.0, gt=0, le=36_500, description="the library grows only this long after the active baseline was set"
     )
 
 
@@ -119,10 +144,10 @@ class GeometryOverride(_Section):
 class NodeSettings(_Section):
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     url: str = Field(min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://host:port, loop://")
-    baud: int = Field(230400, gt=0)
-    interval_s: float = Field(60.0, gt=0, description="time between measurement cycles")
+    baud: int = Field(230400, gt=0, le=20_000_000)
+    interval_s: float = Field(60.0, gt=0, le=MAX_INTERVAL_S, description="time between measurement cycles")
     # The host timeouts docs/protocol.md (section 3.5) tells an integrator to set:
-    timeout_s: float = Field(2.0, gt=0, le=600, description="reply timeout per command, and the longest gap in a bulk reply")
+    timeout_s: float = Field(2.0, gt=0, le=MAX_TIMEOUT_S, description="reply timeout per command, and the longest gap in a bulk reply")
     retries: int = Field(3, ge=0, le=20, description="resends after a timeout or ERROR BUSY (same request id)")
     backoff_s: float = Field(0.05, gt=0, le=60, description="first wait before a resend; doubles per resend")
     backoff_max_s: float = Field(2.0, gt=0, le=600, description="cap of the wait before a resend")
@@ -138,7 +163,7 @@ class NodeSettings(_Section):
     excitation_hz: float = Field(85e3, ge=1e3, le=1e6, description="tone-burst centre frequency sent in CONFIGURE")
     cycles: int = Field(5, ge=1, le=50)
     averaging: int = Field(10, ge=1, le=10000, description="shots averaged per measurement (the paper: 10)")
-    n_samples: int = Field(6000, ge=16, description="record length per channel")
+    n_samples: int = Field(6000, ge=16, le=1_000_000, description="record length per channel")
     geometry: GeometryOverride = GeometryOverride()
     imaging: ImagingSettings = ImagingSettings()
     threshold: ThresholdSettings = ThresholdSettings()
@@ -165,21 +190,43 @@ class NodeSettings(_Section):
         resends_s = self.retries * self.backoff_max_s
         return self.interval_s + (self.retries + 1) * per_attempt_s + resends_s
 
+    @field_validator("url")
+    @classmethod
+    def _pyserial_can_open(cls, value: str) -> str:
+        scheme, sep, _ = value.partition("://")
+        if sep and importlib.util.find_spec(_PYSERIAL_HANDLERS + scheme.lower()) is None:
+            raise ValueError(f"pyserial has no {scheme!r}:// handler (a device path, socket://host:port, "
+                             "rfc2217://host:port, loop://, ...)")
+        return value
+
+    @property
+    def port_key(self) -> str:
+        """What identifies the port: ``/dev/ttyS1``, ``//dev/ttyS1`` and ``/dev/./ttyS1`` are one port,
+        and so are a symlink (``/dev/serial/by-id/...``) and the device it points to, when it exists."""
+        scheme, sep, rest = self.url.partition("://")
+        if sep:
+            return f"{scheme.lower()}://{rest.lower()}"
+        return os.path.realpath(self.url)
+
 
 class GatewaySettings(BaseSettings):
     """Everything the gateway daemon needs, in one place."""
 
-    model_config = SettingsConfigDict(env_prefix="PIPESENTRY_", env_nested_delimiter="__", extra="forbid")
+    model_config = SettingsConfigDict(
+        env_prefix="PIPESENTRY_", env_nested_delimiter="__", extra="forbid", allow_inf_nan=False
+    )
 
     database: DatabaseSettings = DatabaseSettings()
     retention: RetentionSettings = RetentionSettings()
     logging: LoggingSettings = LoggingSettings()
     metrics: MetricsSettings = MetricsSettings()
     alerting: AlertingSettings = AlertingSettings()  # [alerting] and [[alerting.sinks]], see docs/alerting.md
-    reopen_backoff_max_s: float = Field(60.0, gt=0, description="cap of the exponential backoff to reopen a port")
-    shutdown_timeout_s: float = Field(5.0, gt=0)
+    reopen_backoff_max_s: float = Field(
+        60.0, gt=0, le=DAY_S, description="cap of the exponential backoff to reopen a port"
+    )
+    shutdown_timeout_s: float = Field(5.0, gt=0, le=MAX_TIMEOUT_S)
     watchdog_stall_s: float = Field(
-        0.0, ge=0, description="a worker without progress for this long stops watchdog pings (0 = 3 x interval)"
+        0.0, ge=0, le=MAX_INTERVAL_S, description="a worker without progress for this long stops watchdog pings (0 = 3 x interval)"
     )
     nodes: list[NodeSettings] = Field(min_length=1)
 
@@ -189,10 +236,13 @@ class GatewaySettings(BaseSettings):
         dup = sorted({i for i in ids if ids.count(i) > 1})
         if dup:
             raise ValueError(f"node ids must be unique, repeated: {', '.join(dup)}")
-        urls = [n.url for n in self.nodes]
-        dup_urls = sorted({u for u in urls if urls.count(u) > 1 and not u.startswith("loop://")})
-        if dup_urls:
-            raise ValueError(f"two nodes share a port: {', '.join(dup_urls)}")
+        by_port: dict[str, list[str]] = {}
+        for n in self.nodes:
+            if not n.url.startswith("loop://"):
+                by_port.setdefault(n.port_key, []).append(n.url)
+        shared = [" and ".join(urls) if len(set(urls)) > 1 else urls[0] for urls in by_port.values() if len(urls) > 1]
+        if shared:
+            raise ValueError(f"two nodes share a port: {', '.join(shared)}")
         return self
 
     @classmethod
@@ -204,33 +254,59 @@ class GatewaySettings(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        # Highest priority first: environment, then explicit arguments, then the TOML file.
-        return (env_settings, init_settings, TomlConfigSettingsSource(settings_cls))
+        # Highest priority first: the environment, then the file's contents (passed as arguments).
+        return (env_settings, init_settings)
 
 
 def _format_errors(exc: ValidationError) -> str:
     parts = []
     for err in exc.errors():
         key = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        parts.append(f"{key}: {err['msg']}")
+        message = err["msg"].removeprefix("Value error, ")
+        parts.append(f"{key}: {message}")
     return "; ".join(parts)
 
 
-def load_settings(path: str | Path) -> GatewaySettings:
-    """Read and validate the gateway config; raise ConfigError naming every offending key."""
-    path = Path(path)
+def _read_toml(path: Path) -> dict:
     try:
-        with path.open("rb") as fh:
-            tomllib.load(fh)  # surface TOML syntax errors with their line before validation
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"{path}: {exc}") from exc
-
-    class _FromFile(GatewaySettings):
-        model_config = SettingsConfigDict(**{**GatewaySettings.model_config, "toml_file": path})
-
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
     try:
-        return _FromFile()
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
+                          "TOML files are UTF-8") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def load_settings(path: str | Path) -> GatewaySettings:
+    """Read and validate the gateway config; raise ConfigError naming every offending key.
+
+    Opens nothing: the database URL, ports and sinks are checked as far as that is possible
+    without connecting (see :func:`db.urls.check_database_url`)."""
+    path = Path(path)
+    data = _read_toml(path)
+    try:
+        return GatewaySettings(**data)
     except ValidationError as exc:
         raise ConfigError(f"{path}: {_format_errors(exc)}") from None
+    except SettingsError as exc:  # a PIPESENTRY_* variable that is not the JSON its field needs
+        raise ConfigError(f"{path}: {_environment_error(exc)}") from None
+
+
+def _environment_error(exc: SettingsError) -> str:
+    """Which variable is malformed, in one line (pydantic-settings' message names the field)."""
+    cause = exc.__cause__
+    detail = f" ({cause})" if isinstance(cause, ValueError) else ""
+    field = str(exc).partition('field "')[2].partition('"')[0]
+    variable = f"PIPESENTRY_{field.upper()}" if field else "a PIPESENTRY_* variable"
+    return f"environment variable {variable} is not valid JSON for that setting{detail}"

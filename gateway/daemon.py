@@ -11,6 +11,7 @@ from alerts.delivery import AlertDelivery
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageError
 from db.retention import prune_traces
+from db.urls import safe_database_url
 from gateway.config import GatewaySettings
 from gateway.metrics import MetricsServer, gateway_registry, serve_metrics
 from gateway.watchdog import Heartbeats, sd_notify, watchdog_interval_s
@@ -54,6 +55,13 @@ class Gateway:
         limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
         limits.update({name: fixed or limit for name, limit in self.alerting.stall_limits_s().items()})
         return limits
+
+    def threads(self) -> list[threading.Thread]:
+        return [w.thread for w in self.workers] + [self._retention] + self.alerting.threads
+
+    def dead_loops(self) -> list[str]:
+        """Loops whose thread ended while the daemon runs (a bug escaped its loop): nothing polls there any more."""
+        return sorted(t.name for t in self.threads() if t.ident is not None and not t.is_alive())
 
     def start(self) -> None:
         for w in self.workers:
@@ -99,8 +107,18 @@ class Gateway:
         self.db.dispose()
 
 
+def _log_loop_death(args: threading.ExceptHookArgs) -> None:
+    """A loop's thread ended by an exception: into the log with its traceback (not only bare stderr)."""
+    name = args.thread.name if args.thread is not None else "?"
+    exc_info = (args.exc_type, args.exc_value, args.exc_traceback) if args.exc_value is not None else None
+    log.critical("loop %s died: %s", name, args.exc_type.__name__, exc_info=exc_info)
+
+
+EXIT_LOOP_DIED = 1  # a supervisor (systemd Restart=always, a container's restart policy) starts it again
+
+
 def run(settings: GatewaySettings) -> int:
-    """Run until SIGTERM/SIGINT; returns the process exit code."""
+    """Run until SIGTERM/SIGINT (exit 0), or until a loop's thread dies (exit 1, after a clean shutdown)."""
     try:
         db = open_database(settings.database.url, upgrade=True)
     except SchemaOutOfDate as exc:
@@ -108,6 +126,7 @@ def run(settings: GatewaySettings) -> int:
         return 2
     gateway = Gateway(settings, db)
     signalled = threading.Event()
+    threading.excepthook = _log_loop_death
 
     def on_signal(signum, _frame):
         log.info("received %s, shutting down", signal.Signals(signum).name)
@@ -116,12 +135,20 @@ def run(settings: GatewaySettings) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     gateway.start()
-    log.info("gateway started: %d node(s), database %s", len(gateway.workers), _safe_url(settings.database.url))
+    log.info("gateway started: %d node(s), database %s", len(gateway.workers), safe_database_url(settings.database.url))
     sd_notify("READY=1\nSTATUS=polling nodes")
     ping_s = watchdog_interval_s(default_s=5.0)
     limits = gateway.stall_limits_s()
     stalled_reported: list[str] = []
+    exit_code = 0
     while not signalled.wait(ping_s):
+        dead = gateway.dead_loops()
+        if dead:
+            # Its heartbeat would only go stale after the stall limit (hours, or never); the daemon is broken now.
+            log.error("loop %s died (see the error above): no watchdog ping, shutting down to be restarted",
+                      ", ".join(dead))
+            exit_code = EXIT_LOOP_DIED
+            break
         stalled = gateway.heartbeats.stalled(limits)
         if stalled:
             if stalled != stalled_reported:
@@ -133,14 +160,4 @@ def run(settings: GatewaySettings) -> int:
     sd_notify("STOPPING=1")
     gateway.shutdown(settings.shutdown_timeout_s)
     log.info("gateway stopped")
-    return 0
-
-
-def _safe_url(url: str) -> str:
-    from sqlalchemy import make_url
-    from sqlalchemy.exc import ArgumentError
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except ArgumentError:
-        return "<unparseable url>"
+    return exit_code
