@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from alembic import command
 from sqlalchemy import create_engine
@@ -14,6 +15,7 @@ from sqlalchemy import create_engine
 from db import migrate
 from db.database import open_database
 from db.errors import StorageError
+from db.urls import DatabaseUrlError, check_database_url
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,9 +33,12 @@ def _run(argv: list[str] | None) -> int:
     parser.add_argument("--url", required=True, help="database URL, e.g. sqlite:///var/pipesentry.db")
     parser.add_argument("-m", "--message", help="revision message (for 'revision')")
     args = parser.parse_args(argv)
+    url = check_database_url(args.url, writable=args.action == "upgrade")  # before anything is opened or created
     if args.action == "upgrade":
         open_database(args.url, upgrade=True).dispose()
         return 0
+    if url.get_backend_name() == "sqlite" and not Path(str(url.database)).exists():
+        raise DatabaseUrlError(f"no database file at {url.database} (`upgrade` creates it)")
     engine = create_engine(args.url)
     try:
         with engine.connect() as connection:

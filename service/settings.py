@@ -4,6 +4,8 @@ from __future__ import annotations
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from db.urls import DatabaseUrlError, check_database_url
+
 KIB = 1024
 
 
@@ -29,6 +31,16 @@ class ApiSettings(BaseSettings):
         10.0, ge=0, le=300, description="a verified API key is trusted this long without a lookup; a key revoked "
         "outside this process stops working within it (0: look up every request)"
     )
+
+    @field_validator("database_url")
+    @classmethod
+    def _usable_database_url(cls, value: str) -> str:
+        """A URL that cannot work refuses the start (a missing file is fine: /readyz says so until it exists)."""
+        try:
+            check_database_url(value)
+        except DatabaseUrlError as exc:
+            raise ValueError(str(exc)) from None
+        return value
 
     @field_validator("base_path")
     @classmethod

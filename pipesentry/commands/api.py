@@ -31,7 +31,7 @@ def api(
     try:
         settings = ApiSettings(**overrides)
     except ValidationError as exc:
-        fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()))
+        fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}" for e in exc.errors()))
     uvicorn.run(
         create_app(settings),
         host=settings.host,

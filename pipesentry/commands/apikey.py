@@ -25,10 +25,15 @@ DatabaseUrl = Annotated[
 @contextmanager
 def _database(url: str | None) -> Iterator[Database]:
     from db.errors import StorageError
+    from db.urls import DatabaseUrlError, check_database_url
     from service.database import DatabaseGate
     from service.settings import ApiSettings
 
     url = url or os.environ.get("PIPESENTRY_API_DATABASE_URL") or ApiSettings.model_fields["database_url"].default
+    try:
+        check_database_url(url)
+    except DatabaseUrlError as exc:
+        fail(f"--database-url: {exc}")
     try:
         database = DatabaseGate(url, busy_timeout_ms=ApiSettings.model_fields["busy_timeout_ms"].default).get()
     except (StorageError, ValueError) as exc:
