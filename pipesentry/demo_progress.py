@@ -71,10 +71,13 @@ class Progress:
                 for change, det in changes:
                     self._last_change_id = change.id
                     where = ""
-                    if det is not None and det.axial_mm is not None:
-                        where = (f" — peak DI {_fmt(det.peak_di)} vs threshold {_fmt(det.threshold)}, "
-                                 f"estimate {det.axial_mm:.1f} mm, {det.angle_deg:.1f} deg"
-                                 + self._error_mm(change.node_id, det.axial_mm, det.angle_deg, elapsed_s))
+                    if det is not None and det.axial_mm is not None and det.angle_deg is not None:
+                        where = f" — peak DI {_fmt(det.peak_di)} vs threshold {_fmt(det.threshold)}, "
+                        if det.defects:
+                            where += (f"estimate {det.axial_mm:.1f} mm, {det.angle_deg:.1f} deg"
+                                      + self._error_mm(change.node_id, det.axial_mm, det.angle_deg, elapsed_s))
+                        else:  # nothing above the threshold: the peak is noise, no position to judge
+                            where += f"map peak {det.axial_mm:.0f} mm, {det.angle_deg:.0f} deg"
                     self.echo(f"[{elapsed_s:5.0f} s] {change.node_id}: {change.from_state.value} -> "
                               f"{change.to_state.value}{where}")
                 if elapsed_s - self._last_status_s >= STATUS_EVERY_S:
@@ -84,37 +87,56 @@ class Progress:
         except StorageError as exc:
             self.echo(f"(database busy: {exc})")
 
-    def _status_lines(self, s, elapsed_s: float) -> list[str]:
+    def _status_lines(self, s, elapsed_s: float, prefix: str | None = None) -> list[str]:
         counts = dict(s.execute(select(MeasurementRow.node_id, func.count()).group_by(MeasurementRow.node_id)).all())
         lines = []
         for node in s.scalars(select(NodeRow).order_by(NodeRow.node_id)).all():
-            det = s.scalars(
-                select(DetectionRow).where(DetectionRow.node_id == node.node_id).order_by(DetectionRow.id.desc())
-            ).first()
+            det = self._latest_detection(s, node.node_id)
             est = ""
             if det is not None and det.axial_mm is not None:
-                est = f", estimate {det.axial_mm:.0f} mm {det.angle_deg:.0f} deg"
+                # Below the threshold the map's peak is noise, not a defect's position.
+                what = "estimate" if det.defects else "map peak"
+                est = f", {what} {det.axial_mm:.0f} mm {det.angle_deg:.0f} deg"
             lines.append(
-                f"[{elapsed_s:5.0f} s] {node.node_id}: {node.state.value:<13} {counts.get(node.node_id, 0):3d} measurements, "
+                f"{prefix if prefix is not None else f'[{elapsed_s:5.0f} s]'} {node.node_id}: "
+                f"{node.state.value:<13} {counts.get(node.node_id, 0):3d} measurements, "
                 f"peak DI {_fmt(node.latest_di_peak)} / threshold {_fmt(node.latest_threshold)}{est}"
             )
         return lines
 
-    def summary(self) -> None:
+    @staticmethod
+    def _latest_detection(s, node_id: str) -> DetectionRow | None:
+        return s.scalars(
+            select(DetectionRow).where(DetectionRow.node_id == node_id).order_by(DetectionRow.id.desc())
+        ).first()
+
+    def verdict(self, node_id: str, det: DetectionRow | None, elapsed_s: float) -> str | None:
+        """The summary's line about a node's simulated defects: found where, missed, or not there yet."""
+        truths = self.truths.get(node_id, [])
+        if not truths:
+            return None
+        present = [(a, g) for a, g, t in truths if t <= elapsed_s]
+        if not present:
+            first_s = min(t for _, _, t in truths)
+            return f"  {node_id}: its defect appears {first_s:.0f} s in; the demo stopped at {elapsed_s:.0f} s"
+        if det is None or not det.defects or det.axial_mm is None:
+            a, g = present[0]
+            return f"  {node_id}: defect at {a:.0f} mm, {g:.0f} deg not flagged (yet)"
+        return f"  {node_id}: last estimate{self._error_mm(node_id, det.axial_mm, det.angle_deg, elapsed_s)}"
+
+    def summary(self, elapsed_s: float) -> None:
         db = self._database()
         if db is None:
             self.echo("no measurement was stored")
             return
-        with db.session() as s:
-            self.echo("\nsummary:")
-            for line in self._status_lines(s, math.inf):
-                self.echo(line.replace("[  inf s] ", "  "))
-            for node in s.scalars(select(NodeRow).order_by(NodeRow.node_id)).all():
-                det = s.scalars(
-                    select(DetectionRow).where(DetectionRow.node_id == node.node_id).order_by(DetectionRow.id.desc())
-                ).first()
-                if det is not None and self.truths.get(node.node_id):
-                    err = self._error_mm(node.node_id, det.axial_mm, det.angle_deg, math.inf)
-                    if err:
-                        self.echo(f"  {node.node_id}: last estimate{err}")
-        db.dispose()
+        try:
+            with db.session() as s:
+                self.echo("\nsummary:")
+                for line in self._status_lines(s, elapsed_s, prefix=" "):
+                    self.echo(line)
+                for node in s.scalars(select(NodeRow).order_by(NodeRow.node_id)).all():
+                    verdict = self.verdict(node.node_id, self._latest_detection(s, node.node_id), elapsed_s)
+                    if verdict:
+                        self.echo(verdict)
+        finally:
+            db.dispose()

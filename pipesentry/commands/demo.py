@@ -3,10 +3,13 @@
 Starts the mock nodes on pseudo-terminals, the gateway daemon and the API (with a demo key)
 as real processes, prints the dashboard URL, then follows the database and prints progress:
 measurements, state changes, and the estimated defect coordinates against the scenario's
-truth. Stops after ``--duration-s`` or on Ctrl-C.
+truth. Stops after ``--duration-s``, on Ctrl-C, on SIGTERM (``kill``) or SIGHUP (the terminal
+closed): every child is stopped before it exits, none is left running as an orphan.
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import signal
 import socket
@@ -14,15 +17,58 @@ import subprocess
 import sys
 import time
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from pipesentry.errors import fail
 
+if TYPE_CHECKING:
+    from pipesentry.demo_progress import Progress
+
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 DEMO_SCENARIO = DATA_DIR / "demo_scenario.toml"
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+class Stopped(Exception):
+    """A stop signal arrived; raised in the main thread so that the children are stopped on the way out."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def stop_signals_raise() -> Iterator[None]:
+    """Turn SIGINT, SIGTERM and SIGHUP into :class:`Stopped` (once: a second signal while stopping is ignored,
+    so the clean-up it interrupted still runs to the end); the previous handlers come back afterwards."""
+
+    def stopping(_signum: int, _frame: object) -> None:
+        pass  # already on the way out
+
+    def stop(signum: int, _frame: object) -> None:
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, stopping)
+        raise Stopped(signum)
+
+    previous = {sig: signal.signal(sig, stop) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: the kernel sends it SIGTERM if the demo dies without cleaning up (kill -9)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 class Child:
@@ -33,7 +79,8 @@ class Child:
         self.log_path = log_dir / f"{name}.log"
         self._log = self.log_path.open("wb")
         self.popen = subprocess.Popen(
-            args, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True
+            args, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+            preexec_fn=_die_with_parent if sys.platform == "linux" else None,  # noqa: PLW1509 (no threads yet)
         )
 
     def alive(self) -> bool:
@@ -139,39 +186,51 @@ def demo(
     exe = [sys.executable, "-m", "pipesentry"]
     children: list[Child] = []
     started = time.monotonic()
-    try:
-        children.append(Child("mock-node", exe + ["mock-node", "--scenario", str(scenario), "--link-dir", str(link_dir)], out_dir))
-        _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children)
-        typer.echo(f"mock nodes up: {', '.join(f'{n} -> {os.path.realpath(link_dir / n)}' for n in node_ids)}")
-        children.append(Child("gateway", exe + ["gateway", "--config", str(config)], out_dir))
-        db_url = f"sqlite:///{db_path}"
-        _wait_for(lambda: _schema_ready(db_url), 60, "the gateway's database", children)
-        typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
-        key = subprocess.run(
-            exe + ["apikey", "create", "--name", "demo", "--role", "operator", "--database-url", db_url],
-            capture_output=True, text=True, timeout=60, check=False,
-        )
-        if key.returncode != 0:
-            fail(f"cannot create the demo API key: {key.stderr.strip()}")
-        token = key.stdout.strip().splitlines()[-1]
-        api_port = _free_port(port)
-        children.append(Child("api", exe + ["api", "--database-url", db_url, "--port", str(api_port)], out_dir))
-        _wait_for(lambda: _http_ok(f"http://127.0.0.1:{api_port}/healthz"), 60, "the API", children)
-        typer.echo(f"dashboard: http://127.0.0.1:{api_port}/#key={token}")
-        typer.echo(f"API:       http://127.0.0.1:{api_port}/api/v1/nodes  (Authorization: Bearer {token})")
-        typer.echo(f"running for {duration_s:g} s (Ctrl-C stops earlier)\n")
-        progress = Progress(db_url, truths, echo=typer.echo)
-        while time.monotonic() - started < duration_s:
-            for child in children:
-                if not child.alive():
-                    fail(f"{child.name} exited unexpectedly; see {child.log_path}")
-            progress.poll(elapsed_s=time.monotonic() - started)
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        typer.echo("\ninterrupted")
-    finally:
-        for child in reversed(children):
-            child.stop()
-    typer.echo("stopped cleanly")
-    if "progress" in locals():
-        progress.summary()
+    progress: Progress | None = None
+    with stop_signals_raise():
+        try:
+            children.append(Child("mock-node", [*exe, "mock-node", "--scenario", str(scenario),
+                                                "--link-dir", str(link_dir)], out_dir))
+            _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children)
+            typer.echo(f"mock nodes up: {', '.join(f'{n} -> {os.path.realpath(link_dir / n)}' for n in node_ids)}")
+            children.append(Child("gateway", [*exe, "gateway", "--config", str(config)], out_dir))
+            db_url = f"sqlite:///{db_path}"
+            _wait_for(lambda: _schema_ready(db_url), 60, "the gateway's database", children)
+            typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
+            key = subprocess.run(
+                [*exe, "apikey", "create", "--name", "demo", "--role", "operator", "--database-url", db_url],
+                capture_output=True, text=True, timeout=60, check=False,
+            )
+            if key.returncode != 0:
+                fail(f"cannot create the demo API key: {key.stderr.strip()}")
+            token = key.stdout.strip().splitlines()[-1]
+            api_port = _free_port(port)
+            if api_port != port:
+                typer.echo(f"port {port} is taken on 127.0.0.1: the API and dashboard use port {api_port} instead "
+                           "(--port chooses another)")
+            children.append(Child("api", [*exe, "api", "--database-url", db_url, "--port", str(api_port)], out_dir))
+            _wait_for(lambda: _http_ok(f"http://127.0.0.1:{api_port}/healthz"), 60, "the API", children)
+            typer.echo(f"dashboard: http://127.0.0.1:{api_port}/#key={token}")
+            typer.echo(f"API:       http://127.0.0.1:{api_port}/api/v1/nodes  (Authorization: Bearer {token})")
+            typer.echo(f"running for {duration_s:g} s (Ctrl-C stops earlier)\n")
+            progress = Progress(db_url, truths, echo=typer.echo)
+            while time.monotonic() - started < duration_s:
+                for child in children:
+                    if not child.alive():
+                        fail(f"{child.name} exited unexpectedly; see {child.log_path}")
+                progress.poll(elapsed_s=time.monotonic() - started)
+                time.sleep(1.0)
+        except Stopped as stop:
+            _say(f"\n{'interrupted' if stop.signum == signal.SIGINT else f'stopping on {stop}'}")
+        finally:
+            for child in reversed(children):
+                child.stop()
+        _say("stopped cleanly")
+        if progress is not None:
+            progress.summary(elapsed_s=time.monotonic() - started)
+
+
+def _say(line: str) -> None:
+    """Echo, unless the terminal is gone (SIGHUP): stopping must not depend on being able to print."""
+    with contextlib.suppress(OSError):
+        typer.echo(line)
