@@ -43,18 +43,43 @@ def default_window_samples(m: Measurement) -> int:
     return max(1, round(m.cycles / m.excitation_hz * m.fs_hz))
 
 
+# What "the same geometry" means physically: files written as float32 (an API export) and float64
+# (by hand) of one set-up differ by ~1e-7 relative, far below anything a wave could tell apart.
+GEOMETRY_TOLERANCE_MM = 0.01  # distances, circumference, and receiver positions as arc on the wall
+SAMPLING_RELATIVE_TOLERANCE = 1e-6  # fs_hz
+T0_TOLERANCE_SAMPLES = 1e-3  # t0_s, in sample periods
+
+
 def check_compatible(baseline: Measurement, current: Measurement) -> None:
-    """Raise BaselineMismatch unless the two measurements share receivers, sampling and geometry."""
+    """Raise BaselineMismatch unless the two measurements share receivers, sampling and geometry.
+
+    Compared at the precision that matters physically (0.01 mm, 1e-6 of the sampling rate, a
+    thousandth of a sample), and the message says by how much they differ in those units."""
     if baseline.traces.shape != current.traces.shape:
         raise BaselineMismatch(
             f"baseline traces {baseline.traces.shape} and current traces {current.traces.shape} differ in shape"
         )
-    for name in ("fs_hz", "t0_s", "tx_rx_distance_mm", "circumference_mm"):
+    if not math.isclose(baseline.fs_hz, current.fs_hz, rel_tol=SAMPLING_RELATIVE_TOLERANCE):
+        raise BaselineMismatch(f"fs_hz differs: baseline {baseline.fs_hz:.7g} Hz, current {current.fs_hz:.7g} Hz")
+    if abs(baseline.t0_s - current.t0_s) * current.fs_hz > T0_TOLERANCE_SAMPLES:
+        raise BaselineMismatch(
+            f"t0_s differs by {(current.t0_s - baseline.t0_s) * current.fs_hz:+.3g} samples: "
+            f"baseline {baseline.t0_s * 1e6:.6g} us, current {current.t0_s * 1e6:.6g} us"
+        )
+    for name in ("tx_rx_distance_mm", "circumference_mm"):
         a, b = getattr(baseline, name), getattr(current, name)
-        if not math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12):
-            raise BaselineMismatch(f"{name} differs: baseline {a!r}, current {b!r}")
-    if not np.allclose(baseline.rx_angles_deg, current.rx_angles_deg, atol=1e-6):
-        raise BaselineMismatch("receiver angles differ between baseline and current")
+        if abs(a - b) > GEOMETRY_TOLERANCE_MM:
+            raise BaselineMismatch(
+                f"{name} differs by {b - a:+.3f} mm: baseline {a:.3f} mm, current {b:.3f} mm "
+                f"(tolerance {GEOMETRY_TOLERANCE_MM} mm)"
+            )
+    arc_mm = wrapped_arc_mm(current.rx_angles_deg, baseline.rx_angles_deg, current.circumference_mm)
+    if np.any(arc_mm > GEOMETRY_TOLERANCE_MM):
+        k = int(np.argmax(arc_mm))
+        raise BaselineMismatch(
+            f"receiver angles differ between baseline and current: receiver {k} at {baseline.rx_angles_deg[k]:.3f} deg "
+            f"and {current.rx_angles_deg[k]:.3f} deg, {arc_mm[k]:.2f} mm apart on the wall"
+        )
 
 
 def literal_di_map(
