@@ -112,7 +112,15 @@ def load_npz(path: str | Path) -> Measurement:
             fields = {k: data[k] for k in data.files}
     except FileNotFoundError:
         raise MeasurementFileError(f"{path}: no such file") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except ValueError as exc:
+        # NumPy falls back to unpickling whatever is not a zip or .npy file, and its refusal then suggests
+        # allow_pickle=True: never do that with a file from elsewhere. It is simply not one of ours.
+        if "pickle" in str(exc):
+            raise MeasurementFileError(
+                f"{path}: not a PipeSentry measurement (not a readable .npz file, a zip of NumPy arrays: docs/formats.md)"
+            ) from None
+        raise MeasurementFileError(f"{path}: not a readable .npz file ({exc})") from exc
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
         raise MeasurementFileError(f"{path}: not a readable .npz file ({exc})") from exc
     return measurement_from_mapping(fields, str(path))
 

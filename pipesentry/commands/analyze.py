@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -35,11 +36,25 @@ def format_summary(result) -> str:
     return "\n".join(lines)
 
 
+def _prepare_output(png: Path) -> None:
+    """Create the PNG's directory (``out/`` on a fresh clone) and refuse a path that cannot be written."""
+    try:
+        png.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fail(f"cannot write {png}: {exc.strerror or exc} ({png.parent})")
+    if png.is_dir():
+        fail(f"cannot write {png}: it is a directory")
+    if not os.access(png.parent, os.W_OK | os.X_OK):
+        fail(f"cannot write {png}: no permission to write in {png.parent}")
+
+
 def analyze(
     baseline: Annotated[Path, typer.Option(help="baseline (defect-free) measurement, .npz or .csv")],
     current: Annotated[Path, typer.Option(help="current measurement, .npz or .csv")],
     as_json: Annotated[bool, typer.Option("--json", help="print exactly one JSON object")] = False,
-    png: Annotated[Path | None, typer.Option(help="write the DI-map heatmap to this PNG file")] = None,
+    png: Annotated[
+        Path | None, typer.Option(help="write the DI-map heatmap to this PNG file (its directory is created)")
+    ] = None,
     method: Annotated[str, typer.Option(help="multipath (all paths, default) or paper (Algorithm 1)")] = "multipath",
     feature: Annotated[str, typer.Option(help="multipath feature: analytic (default), envelope or squared")] = "analytic",
     threshold: Annotated[float | None, typer.Option(help="detection threshold (default: documented per method)")] = None,
@@ -57,6 +72,8 @@ def analyze(
     from imaging.multipath import MultipathError
     from imaging.pipeline import SettingsError
 
+    if png is not None:
+        _prepare_output(png)  # before the work: a path that cannot be written fails now, not after the map
     try:
         base = load_measurement(baseline)
         cur = load_measurement(current)

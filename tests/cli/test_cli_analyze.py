@@ -73,10 +73,29 @@ def test_corrupt_file_exits_2(files):
     assert proc.stderr.startswith("error: ")
 
 
-def test_unwritable_png_exits_2(files):
+def test_the_png_directory_is_created_like_out_on_a_fresh_clone(files):
     base, cur, d = files
-    proc = run_cli("analyze", "--baseline", base, "--current", cur, "--png", d / "no-such-dir" / "x.png")
-    assert proc.returncode == 2 and "cannot write" in proc.stderr
+    png = d / "out" / "sub" / "example.png"
+    proc = run_cli("analyze", "--baseline", base, "--current", cur, "--png", png)
+    assert proc.returncode == 0, proc.stderr
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_unwritable_png_path_exits_2_before_the_map_is_computed(files):
+    base, cur, _ = files
+    proc = run_cli("analyze", "--baseline", base, "--current", cur, "--png", base / "x.png")  # under a file
+    assert proc.returncode == 2 and "cannot write" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.stdout == ""  # refused before the work: no summary was printed
+
+
+def test_a_file_that_is_not_a_measurement_never_suggests_unpickling_it(files):
+    _, cur, d = files
+    text = d / "notes.npz"
+    text.write_text("baseline taken on Monday\n")
+    proc = run_cli("analyze", "--baseline", text, "--current", cur)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert "not a PipeSentry measurement" in proc.stderr
+    assert "pickle" not in proc.stderr.lower()
 
 
 def test_a_pair_far_apart_in_temperature_is_imaged_with_a_caution():
