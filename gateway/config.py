@@ -294,13 +294,17 @@ def load_settings(path: str | Path) -> GatewaySettings:
     Opens nothing: the database URL, ports and sinks are checked as far as that is possible
     without connecting (see :func:`db.urls.check_database_url`)."""
     path = Path(path)
-    data = _read_toml(path)
+    return settings_from_mapping(_read_toml(path), source=str(path))
+
+
+def settings_from_mapping(data: dict, source: str) -> GatewaySettings:
+    """Validate a parsed config (the environment still wins); ConfigError messages start with ``source``."""
     try:
         return GatewaySettings(**data)
     except ValidationError as exc:
-        raise ConfigError(f"{path}: {_format_errors(exc)}") from None
+        raise ConfigError(f"{source}: {_format_errors(exc)}") from None
     except SettingsError as exc:  # a PIPESENTRY_* variable that is not the JSON its field needs
-        raise ConfigError(f"{path}: {_environment_error(exc)}") from None
+        raise ConfigError(f"{source}: {_environment_error(exc)}") from None
 
 
 def _environment_error(exc: SettingsError) -> str:

@@ -10,7 +10,7 @@ from pipesentry.errors import fail
 
 
 def gateway(
-    config: Annotated[Path, typer.Option(help="gateway TOML config (see docs/configuration.md)")],
+    config: Annotated[Path, typer.Option(help="gateway TOML config: docs/gateway.md, examples/gateway-*.toml")],
     check: Annotated[bool, typer.Option("--check", help="validate the config and exit")] = False,
 ) -> None:
     """Poll the configured nodes, store traces and DI maps, recompute the map, flag damage."""
