@@ -20,6 +20,8 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # Plain click help: it wraps at the terminal's width; rich's boxed tables truncated option names at 80 columns.
+    rich_markup_mode=None,
 )
 
 

@@ -14,7 +14,7 @@ if TYPE_CHECKING:  # imported lazily at run time: the CLI's --help stays fast
     from db.database import Database
 
 apikey_app = typer.Typer(help="Create, list and revoke API keys of the operator API.", no_args_is_help=True,
-                         add_completion=False, pretty_exceptions_enable=False)
+                         add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
 
 DatabaseUrl = Annotated[
     str | None,
