@@ -3,6 +3,7 @@
 #   chromium                 the dashboard's browser test
 #   prometheus               promtool (rule unit tests) and prometheus
 #   prometheus-alertmanager  a real Alertmanager 0.25 and amtool (alert lifecycle tests)
+#   jq                       the documentation's curl examples (tests/docs runs them)
 # The tests start their own processes on 127.0.0.1 ephemeral ports with temporary data
 # directories; the system services these packages ship are not used, so they are kept from
 # starting on install (policy-rc.d) and stopped if they run anyway.
@@ -14,6 +15,7 @@ command -v chromium >/dev/null 2>&1 || missing+=(chromium)
 { command -v promtool >/dev/null 2>&1 && command -v prometheus >/dev/null 2>&1; } || missing+=(prometheus)
 { command -v prometheus-alertmanager >/dev/null 2>&1 && command -v amtool >/dev/null 2>&1; } \
   || missing+=(prometheus-alertmanager)
+command -v jq >/dev/null 2>&1 || missing+=(jq)
 [ ${#missing[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then
   echo "missing ${missing[*]} and cannot install here (needs root and apt-get); the tests that need them will skip" >&2
