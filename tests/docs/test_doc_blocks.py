@@ -15,7 +15,8 @@ The rule, on purpose hard to dodge:
   ``make`` target, ``python -m`` module and repository path it names exists. Then it *runs*, in a
   fresh copy of the checkout (no ``out/``), with ``.venv/bin`` on the PATH, under ``set -e`` with
   ``curl`` failing on HTTP errors, unless it starts something long-running (``make``, ``docker``,
-  ``systemctl``, pytest, ``pipesentry demo|api|mock-node`` or a gateway without ``--check``).
+  ``systemctl``, pytest, ``pipesentry demo|api|mock-node``, a gateway without ``--check``, or a
+  ``python -m`` action listed in ``LONG_RUNNING_MODULE_ACTIONS``).
   A block that talks to ``http://127.0.0.1:8000`` runs against a real API server on an ephemeral
   port over the test fleet's database, with ``psk_...`` replaced by an admin key and ``node-7``
   by the fleet's damaged node.
@@ -57,6 +58,8 @@ REPO_DIRS = ("tests", "docs", "examples", "pipesentry", "deploy", "docker", "scr
              "gateway", "service", "db", "alerts", "mocknode", "protocol")
 LONG_RUNNING = {"make", "docker", "systemctl", "journalctl", "pytest"}
 LONG_RUNNING_SUBCOMMANDS = {"demo", "api", "mock-node"}
+# `python -m <module> <action>` that serve forever or compute for minutes (checked, not started here).
+LONG_RUNNING_MODULE_ACTIONS = {("alerts", "deliver"), ("fullwave", "generate")}
 RUN_TIMEOUT_S = 120
 
 
@@ -222,7 +225,7 @@ def _long_running(words: list[str]) -> bool:
     program = Path(words[0]).name
     if program in LONG_RUNNING or (program.startswith("python") and words[1:3] == ["-m", "pytest"]):
         return True
-    if program.startswith("python") and words[1:3] == ["-m", "alerts"]:
+    if program.startswith("python") and words[1:2] == ["-m"] and tuple(words[2:4]) in LONG_RUNNING_MODULE_ACTIONS:
         return True
     if program == "pipesentry":
         sub = next((w for w in words[1:] if not w.startswith("-")), "")
