@@ -18,6 +18,7 @@ from service.limits import BodySizeLimit
 from service.maps import HeatmapRenderer
 from service.metrics import metrics_registry
 from service.routes import alerts, detections, keys, measurements, nodes
+from service.routes.api_docs import install_api_docs
 from service.routes.dashboard import STATIC_DIR, dashboard_router
 from service.routes.health import health_router
 from service.settings import ApiSettings
@@ -75,7 +76,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         description=DESCRIPTION,
         lifespan=lifespan,
         openapi_url=f"{settings.base_path}/openapi.json",
-        docs_url=f"{settings.base_path}/docs",
+        docs_url=None,  # served below from local files, not a CDN
         redoc_url=None,
     )
     app.state.settings = settings
@@ -90,6 +91,8 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
     app.include_router(health_router(settings))
     app.include_router(dashboard_router(settings))
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    install_api_docs(app, docs_url=f"{settings.base_path}/docs", openapi_url=f"{settings.base_path}/openapi.json",
+                     title=app.title)
 
     if settings.cors_origins:
         app.add_middleware(

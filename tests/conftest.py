@@ -11,6 +11,7 @@ pytest_plugins = [
     "tests.support.alerts_fixtures",
     "tests.support.api_fixtures",
     "tests.support.mqtt_broker",
+    "tests.support.browser_fixtures",
 ]
 
 # Fixtures that start the whole system (mock nodes, a gateway and an API server): a test using one is e2e.

@@ -1,52 +1,17 @@
 """The dashboard in headless Chromium against the running API on the gateway-filled fleet.
 
-Skips where Chromium is missing (a developer's laptop without root); fails instead with CI=true.
+The browser and an offline page come from tests/support/browser_fixtures.py (skips without
+Chromium, fails instead with CI=true).
 """
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
-
 import pytest
 
-from tests.support.api_fixtures import DAMAGED_NODE, QUIET_NODES, Api, in_ci
+from tests.support.api_fixtures import DAMAGED_NODE, QUIET_NODES, Api
 
 pytestmark = [pytest.mark.browser, pytest.mark.e2e, pytest.mark.timeout(180)]
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]
 WAIT_MS = 30_000
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.exists() and shutil.which("chromium") is None:
-        message = "headless Chromium not installed (scripts/ensure-test-deps.sh installs it)"
-        if in_ci():
-            pytest.fail(message)
-        pytest.skip(message)
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            yield chromium
-        finally:
-            chromium.close()
-
-
-@pytest.fixture
-def page(browser):
-    context = browser.new_context()
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda error: errors.append(str(error)))
-    yield page
-    context.close()
-    assert not errors, f"JavaScript errors on the page: {errors}"
 
 
 def test_damaged_node_shows_as_damaged_with_its_map_and_marked_defect(api: Api, page):
