@@ -13,12 +13,16 @@ from db.errors import NotFound
 from db.measurements import get_measurement, load_pixels
 from db.models import DiMapRow, MapSource
 from db.queries import detection_for
+from imaging.detection import DEFAULT_THRESHOLDS
 from imaging.dimap import DIMap
 from imaging.grid import Grid
 from imaging.heatmap import heatmap_png
 from imaging.localize import Estimate, locate_peak
 from service import schemas
 
+# The feature is not stored with a map; while a node calibrates, its colours use the default of the
+# gateway's default feature (analytic), an approximation that lasts only until the threshold exists.
+DEFAULT_FEATURE = "analytic"
 PNG_CACHE_ENTRIES = 64  # a stored map never changes, so its PNG can be kept (~60 kB each)
 
 
@@ -63,6 +67,20 @@ def _marker_label(session: Session, row: DiMapRow) -> str:
     return "estimate" if detection is not None and detection.defects else "map peak (below threshold)"
 
 
+def _colour_scale(session: Session, row: DiMapRow) -> tuple[float | None, str]:
+    """The threshold the map's colours are scaled to, and what to call it on the colour bar.
+
+    The gateway's map: the verdict's threshold (the node's), or while calibrating the method's
+    documented default. The node's own map is in other units (the on-board paper DI): its own range."""
+    if row.source != MapSource.GATEWAY:
+        return None, ""
+    detection = detection_for(session, row.measurement_id)
+    if detection is not None and detection.threshold is not None:
+        return detection.threshold, "threshold"
+    default = DEFAULT_THRESHOLDS.get((row.method, DEFAULT_FEATURE))
+    return default, "default threshold (calibrating)"
+
+
 def map_json(session: Session, measurement_id: int, source: MapSource) -> schemas.DiMap:
     row = map_row(session, measurement_id, source)
     di_map = _di_map(row)
@@ -92,14 +110,17 @@ class HeatmapRenderer:
         di_map = _di_map(row)
         estimate = _estimate(session, row, di_map)
         label = _marker_label(session, row)
-        key = (row.id, row.pixels_sha256, label, None if estimate is None else (estimate.axial_mm, estimate.angle_deg))
+        threshold, threshold_label = _colour_scale(session, row)
+        key = (row.id, row.pixels_sha256, label, threshold,
+               None if estimate is None else (estimate.axial_mm, estimate.angle_deg))
         with self._lock:
             cached = self._cache.get(key)
             if cached is not None:
                 self._cache.move_to_end(key)
                 return cached
             title = f"{row.measurement.node_id} measurement {measurement_id}: {source.value} DI map ({row.method})"
-            png = heatmap_png(di_map, [] if estimate is None else [estimate], title=title, label=label)
+            png = heatmap_png(di_map, [] if estimate is None else [estimate], title=title, label=label,
+                              threshold=threshold, threshold_label=threshold_label)
             self._cache[key] = png
             while len(self._cache) > self._entries:
                 self._cache.popitem(last=False)

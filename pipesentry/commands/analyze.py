@@ -90,7 +90,9 @@ def analyze(
             fail(f"no map to draw: {result.no_valid_baseline.reason if result.no_valid_baseline else 'no map'}")
         try:
             marks: list[MapMark] = [*result.defects] or [result.peak]
-            png.write_bytes(heatmap_png(result.di_map, marks))
+            # Below the threshold the cross is the map's strongest point, not a defect's estimate.
+            label = "estimate" if result.defects else "map peak (below threshold)"
+            png.write_bytes(heatmap_png(result.di_map, marks, label=label, threshold=result.threshold))
         except OSError as exc:
             fail(f"cannot write {png}: {exc.strerror or exc}")
     if as_json:

@@ -107,3 +107,23 @@ def test_a_pair_far_apart_in_temperature_is_imaged_with_a_caution():
     assert "baseline stretched by +0.2" in text and "caution: beyond the 0.15%" in text
     near = format_summary(assess(record(22.0, 2), [record(20.0, 1)], AssessSettings(wall_mm=4.0)))
     assert "caution" not in near
+
+
+@pytest.mark.parametrize("method", ["paper", "multipath"])
+def test_a_png_without_a_defect_calls_its_cross_the_map_peak_not_an_estimate(files, tmp_path, monkeypatch, method):
+    """A sub-threshold noise peak was labelled "estimate 1" on the paper-method PNG (issue 16, item 9)."""
+    from typer.testing import CliRunner
+
+    import imaging.heatmap
+    from pipesentry.cli import app
+
+    base, _, _ = files
+    drawn: list[dict] = []
+    real = imaging.heatmap.heatmap_png
+    monkeypatch.setattr(imaging.heatmap, "heatmap_png", lambda m, marks, **kw: drawn.append(kw) or real(m, marks, **kw))
+    png = tmp_path / "same.png"
+    result = CliRunner().invoke(app, ["analyze", "--baseline", str(base), "--current", str(base), "--method", method,
+                                      "--png", str(png)])
+    assert result.exit_code == 0, result.output
+    assert "no defect detected" in result.output
+    assert drawn[0]["label"] == "map peak (below threshold)" and drawn[0]["threshold"] > 0
