@@ -46,7 +46,9 @@ function el(tag, attrs = {}, ...children) {
   return node;
 }
 
-function fmt(value, digits = 4) { return value === null || value === undefined ? "–" : Number(value).toPrecision(digits); }
+function fmt(value, digits = 3) {
+  return value === null || value === undefined ? "–" : String(Number(Number(value).toPrecision(digits)));
+}
 function when(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
 function stateBadge(state) { return el("span", { class: "state state-" + state, "data-state": state }, state.replaceAll("_", " ")); }
 
@@ -85,7 +87,7 @@ function card(nodeId) {
       el("img", { class: "heatmap", alt: `latest DI map of ${nodeId}` }),
       el("p", { class: "estimate", hidden: "" }),
       el("p", { class: "meta map-caption" }),
-      svg("svg", { class: "trend", viewBox: "0 0 560 140", role: "img", "aria-label": `DI peak trend of ${nodeId}` }),
+      svg("svg", { class: "trend", viewBox: "0 0 560 170", role: "img", "aria-label": `DI peak trend of ${nodeId}` }),
       el("p", { class: "meta baseline" }));
     document.getElementById("nodes").append(section);
   }
@@ -98,40 +100,87 @@ function svg(tag, attrs = {}) {
   return node;
 }
 
-function drawTrend(target, detections) {
-  const points = detections.slice().reverse(); // oldest first
-  const width = 560, height = 140, left = 44, right = 8, top = 8, bottom = 18;
-  const values = points.flatMap((d) => [d.peak_di, d.threshold]).filter((v) => v !== null && v !== undefined);
+// "Nice" axis steps: 1, 2 or 5 times a power of ten, about `count` of them over the range.
+function niceStep(span, count) {
+  const raw = span / Math.max(1, count);
+  const power = 10 ** Math.floor(Math.log10(raw));
+  return [1, 2, 5, 10].map((m) => m * power).find((step) => step >= raw);
+}
+
+const TIME_STEPS_S = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 2 * 3600, 6 * 3600, 12 * 3600, 86400, 7 * 86400];
+
+function timeLabel(ms, stepS) {
+  const d = new Date(ms);
+  if (stepS >= 86400) return d.toLocaleDateString([], { month: "short", day: "numeric" });
+  if (stepS < 60) return d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit" });
+  return d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
+}
+
+function svgText(target, attrs, text) {
+  const node = svg("text", attrs);
+  node.textContent = text;
+  target.append(node);
+}
+
+// The DI peak over time against the threshold: a time axis, nice DI ticks, the threshold as a step
+// line that holds until it changes (so one calibrated reading already draws it), exceedances in red.
+function drawTrend(target, detections, currentThreshold) {
+  const points = detections.slice().reverse().map((d) => ({ ...d, t: Date.parse(d.created_at) })); // oldest first
+  const width = 560, height = 170, left = 52, right = 12, top = 10, bottom = 34;
   target.replaceChildren();
+  const values = points.flatMap((d) => [d.peak_di, d.threshold]).concat([currentThreshold])
+    .filter((v) => v !== null && v !== undefined);
   if (points.length === 0 || values.length === 0) {
-    const text = svg("text", { x: left, y: height / 2, class: "axis" });
-    text.textContent = "no monitor measurements yet";
-    target.append(text);
+    svgText(target, { x: left, y: height / 2, class: "axis" }, "no monitor measurements yet");
     return;
   }
-  const lo = Math.min(0, ...values), hi = Math.max(...values) * 1.1 || 1;
-  const x = (i) => left + (points.length === 1 ? 0 : (i * (width - left - right)) / (points.length - 1));
-  const y = (v) => top + (height - top - bottom) * (1 - (v - lo) / (hi - lo));
-  const withPeak = points.map((d, i) => [i, d.peak_di]).filter(([, v]) => v !== null && v !== undefined);
-  target.append(svg("polyline", { class: "peak", points: withPeak.map(([i, v]) => `${x(i)},${y(v)}`).join(" ") }));
-  const withThreshold = points.map((d, i) => [i, d.threshold]).filter(([, t]) => t !== null && t !== undefined);
-  if (withThreshold.length) {
-    target.append(svg("polyline", { class: "threshold", fill: "none",
-      points: withThreshold.map(([i, t]) => `${x(i)},${y(t)}`).join(" ") }));
+  // The axis runs a little past the last reading: the threshold holds on, so a single calibrated
+  // reading already draws a line, and the latest point is not squeezed against the edge.
+  const tLast = Math.max(points[points.length - 1].t, points[0].t + 1000);
+  const t0 = points[0].t, t1 = tLast + 0.06 * (tLast - points[0].t);
+  const yStep = niceStep(Math.max(...values) * 1.15 || 1, 4);
+  const hi = Math.ceil((Math.max(...values) * 1.15 || 1) / yStep) * yStep;
+  const x = (t) => left + ((t - t0) * (width - left - right)) / (t1 - t0);
+  const y = (v) => top + (height - top - bottom) * (1 - v / hi);
+  const digits = Math.max(0, -Math.floor(Math.log10(yStep)));
+  for (let v = 0; v <= hi + yStep / 2; v += yStep) {  // DI ticks and grid lines
+    target.append(svg("line", { class: "grid", x1: left, x2: width - right, y1: y(v), y2: y(v) }));
+    svgText(target, { x: left - 4, y: y(v) + 3, class: "axis tick-di", "text-anchor": "end" }, v.toFixed(digits));
   }
-  for (const v of [lo, hi]) {
-    const label = svg("text", { x: 2, y: y(v) + (v === lo ? 0 : 8), class: "axis" });
-    label.textContent = fmt(v, 2);
-    target.append(label);
+  const spanS = (t1 - t0) / 1000;
+  const tStep = (TIME_STEPS_S.find((s) => spanS / s <= 6) || TIME_STEPS_S[TIME_STEPS_S.length - 1]) * 1000;
+  for (let t = Math.ceil(t0 / tStep) * tStep; t <= tLast; t += tStep) {  // time ticks
+    target.append(svg("line", { class: "axis-line", x1: x(t), x2: x(t), y1: height - bottom, y2: height - bottom + 4 }));
+    svgText(target, { x: x(t), y: height - bottom + 14, class: "axis tick-time", "text-anchor": "middle" },
+      timeLabel(t, tStep / 1000));
   }
-  const caption = svg("text", { x: left, y: height - 4, class: "axis" });
-  caption.textContent = `DI peak (blue) vs threshold (red dashed), last ${points.length} measurements`;
-  target.append(caption);
+  target.append(svg("line", { class: "axis-line", x1: left, x2: width - right, y1: height - bottom, y2: height - bottom }));
+  const steps = [];
+  points.forEach((d, i) => {
+    if (d.threshold === null || d.threshold === undefined) return;
+    const until = i + 1 < points.length ? points[i + 1].t : t1;
+    steps.push(`${x(d.t)},${y(d.threshold)}`, `${x(until)},${y(d.threshold)}`);
+  });
+  if (steps.length) {
+    target.append(svg("polyline", { class: "threshold", fill: "none", points: steps.join(" ") }));
+    const last = points.filter((d) => d.threshold !== null && d.threshold !== undefined).pop();
+    svgText(target, { x: width - right, y: y(last.threshold) - 4, class: "axis threshold-label", "text-anchor": "end" },
+      `threshold ${fmt(last.threshold)}`);
+  }
+  const withPeak = points.filter((d) => d.peak_di !== null && d.peak_di !== undefined);
+  target.append(svg("polyline", { class: "peak", points: withPeak.map((d) => `${x(d.t)},${y(d.peak_di)}`).join(" ") }));
+  for (const d of withPeak) {
+    if (d.threshold !== null && d.threshold !== undefined && d.peak_di > d.threshold) {
+      target.append(svg("circle", { class: "exceedance", cx: x(d.t), cy: y(d.peak_di), r: 2.5 }));
+    }
+  }
+  svgText(target, { x: left, y: height - 4, class: "axis" },
+    `DI peak (blue; red: above the threshold) and threshold (dashed), last ${points.length} measurements`);
 }
 
 async function renderNode(node) {
   const section = card(node.node_id);
-  section.classList.toggle("damage", node.state === "damage");
+  for (const state of ["damage", "suspected", "no_valid_baseline"]) section.classList.toggle(state, node.state === state);
   section.querySelector(".badge").replaceChildren(stateBadge(node.state));
   section.querySelector(".summary").textContent =
     (node.details.label ? `${node.details.label}${node.details.location ? `, ${node.details.location}` : ""} · ` : "") +
@@ -142,7 +191,7 @@ async function renderNode(node) {
     ? `Baseline in use: measurement ${b.measurement_id}, set by ${b.created_by} on ${when(b.created_at)} (${b.reason})`
     : "No active baseline.";
   const page = await api(`/nodes/${encodeURIComponent(node.node_id)}/detections?limit=${TREND_POINTS}`);
-  drawTrend(section.querySelector(".trend"), page.items);
+  drawTrend(section.querySelector(".trend"), page.items, node.latest_threshold);
   const latest = node.latest_detection;
   const estimate = section.querySelector(".estimate");
   const img = section.querySelector(".heatmap");
@@ -178,8 +227,10 @@ async function renderNode(node) {
   } else {
     estimate.hidden = true;
   }
+  const flaggedMap = node.state === "damage" || node.state === "suspected";
   section.querySelector(".map-caption").textContent =
-    `Gateway DI map of measurement ${latest.measurement_id} (${when(latest.created_at)}); ✕ marks the estimate.`;
+    `Gateway DI map of measurement ${latest.measurement_id} (${when(latest.created_at)}); colours against the ` +
+    `threshold (grey below it); ✕ marks ${flaggedMap ? "the estimate" : "the map's peak"}.`;
   if (shownMaps.get(node.node_id) !== latest.measurement_id) {
     const blob = await api(`/measurements/${latest.measurement_id}/di-maps/gateway.png`, "blob");
     const old = img.src;

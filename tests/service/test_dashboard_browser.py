@@ -108,3 +108,49 @@ def test_a_blind_node_says_why_and_a_faulty_receiver_is_named_while_the_others_s
     page.wait_for_function("img => img.complete && img.naturalWidth > 0", arg=damaged_map.element_handle(),
                            timeout=WAIT_MS)
     assert "refresh failed" not in page.locator("#status").inner_text()
+
+
+def _alarm_share(png: bytes) -> float:
+    """Share of the map area's pixels in alarm colours (saturated hues); the colour bar is left out."""
+    import io
+
+    import numpy as np
+    from matplotlib.colors import rgb_to_hsv
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float) / 255.0
+    height, width, _ = rgb.shape
+    area = rgb[int(0.15 * height):int(0.85 * height), int(0.15 * width):int(0.65 * width)]
+    hsv = rgb_to_hsv(area)
+    return float(np.mean((hsv[..., 1] > 0.35) & (hsv[..., 2] > 0.2)))
+
+
+def test_a_healthy_nodes_map_is_calm_and_a_damaged_ones_unmistakable(api: Api):
+    with api.client(api.keys.viewer) as client:
+        shares = {}
+        for node in (QUIET_NODES[0], DAMAGED_NODE):
+            latest = client.get(f"/api/v1/nodes/{node}/detections/latest").json()
+            png = client.get(f"/api/v1/measurements/{latest['measurement_id']}/di-maps/gateway.png")
+            assert png.status_code == 200
+            shares[node] = _alarm_share(png.content)
+    assert shares[QUIET_NODES[0]] < 0.01, shares  # jet filled a sound node's card with colour
+    assert shares[DAMAGED_NODE] > 0.03, shares
+
+
+def test_the_trend_has_a_time_axis_di_ticks_and_the_threshold_from_the_first_calibrated_reading(api: Api, page):
+    import sqlite3
+
+    node = QUIET_NODES[0]
+    with sqlite3.connect(api.db_url.removeprefix("sqlite:///")) as db:  # as right after calibration
+        db.execute("UPDATE detections SET threshold = NULL WHERE node_id = ? AND id < (SELECT max(id) FROM detections "
+                   "WHERE node_id = ?)", (node, node))
+    page.goto(f"{api.base_url}/#key={api.keys.viewer}")
+    trend = page.locator(f'.node-card[data-node="{node}"] svg.trend')
+    trend.locator("polyline.peak").wait_for(state="attached", timeout=WAIT_MS)
+    assert trend.locator("text.tick-di").count() >= 3
+    assert trend.locator("text.tick-time").count() >= 2
+    assert all(":" in t for t in trend.locator("text.tick-time").all_text_contents())  # clock times
+    threshold = trend.locator("polyline.threshold")
+    assert threshold.count() == 1
+    box = threshold.bounding_box()
+    assert box is not None and box["width"] > 5, "one calibrated reading draws no threshold line"
