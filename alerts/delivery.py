@@ -32,7 +32,7 @@ from alerts.config import (
     WebhookSinkSettings,
 )
 from alerts.errors import DeliveryFailed, EndpointGone
-from alerts.events import EventKind, sink_disabled_event
+from alerts.events import EventKind, log_level, sink_disabled_event
 from alerts.mqtt import MqttTransport
 from alerts.outages import check_outages
 from alerts.outbox import (
@@ -312,7 +312,7 @@ class FleetWatcher:
             added = check_outages(session, self.alerting, now=now, watching_since=self.watching_since)
             added += check_baseline_changes(session, self.alerting, now=now)
         for event in added:
-            log.warning("alerts: %s", event.payload["summary"], extra={"event_kind": event.kind})
+            log.log(log_level(event.severity), "alerts: %s", event.payload["summary"], extra={"event_kind": event.kind})
         return self.interval_s
 
 

@@ -8,6 +8,7 @@ each sink renders them (``alerts/webhook.py`` ... ``alerts/mqtt.py``).
 """
 from __future__ import annotations
 
+import logging
 import uuid
 from dataclasses import replace
 from datetime import datetime
@@ -69,6 +70,16 @@ DAMAGE_KINDS = frozenset({EventKind.DAMAGE_RAISED, EventKind.DAMAGE_CLEARED})
 OUTAGE_KINDS = frozenset({EventKind.NODE_OFFLINE, EventKind.NODE_ONLINE})
 # Kinds about one receiver of a node (payload "receiver": {rx_index, rx_angle_deg, kind, ...}).
 SENSOR_FAULT_KINDS = frozenset({EventKind.SENSOR_FAULT, EventKind.SENSOR_FAULT_CLEARED})
+
+
+# How loud an event is in the daemon's log: as loud as it is to operators. A baseline change or a node
+# back online is routine (INFO); an outage or a blind node is a warning; damage is an error-level line.
+_LOG_LEVELS = {Severity.INFO: logging.INFO, Severity.WARNING: logging.WARNING, Severity.CRITICAL: logging.ERROR}
+
+
+def log_level(severity: Severity | str) -> int:
+    """The logging level an event of this severity is logged at."""
+    return _LOG_LEVELS[Severity(severity)]
 
 
 def event_id(*parts: object) -> uuid.UUID:

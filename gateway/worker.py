@@ -22,6 +22,7 @@ from alerts.alarms import BaselineSet, decommissioning_events, open_alarms
 from alerts.config import AlertingSettings
 from alerts.events import (
     SENSOR_FAULT_KINDS,
+    log_level,
     node_decommissioned_event,
     node_misconfigured_event,
     node_recommissioned_event,
@@ -76,6 +77,7 @@ from nodelink.transport import PORT_ERRORS
 from retry_timing.backoff import Backoff
 
 log = logging.getLogger("pipesentry.gateway")
+ROUTINE_STATES = frozenset({NodeState.COMMISSIONING, NodeState.CALIBRATING, NodeState.OK})  # logged at INFO
 
 REOPEN_BACKOFF_BASE_S = 0.5  # the first retry after a failed cycle; doubling up to reopen_backoff_max_s
 
@@ -263,7 +265,7 @@ class NodeWorker:
                 add_event_once(session, added, node_id=node.node_id)
         self._out_of_service, self._decommissioned_at = decommissioned, since
         if decommissioned:
-            log.warning("node decommissioned (API); port released, not polling until it is recommissioned")
+            log.info("node decommissioned (API); port released, not polling until it is recommissioned")
         else:
             log.info("node recommissioned (API); polling again")
         return decommissioned
@@ -444,11 +446,13 @@ class NodeWorker:
                      acquisition.temperature_c)
         for event in stored.events:
             if event.kind in SENSOR_FAULT_KINDS:
-                log.warning("%s: %s", event.kind, event.payload["summary"])
+                log.log(log_level(event.severity), "%s: %s", event.kind, event.payload["summary"])
         change = verdict.state_change
         if change is not None:
-            log.warning("state %s -> %s", change.from_state.value, change.to_state.value,
-                        extra={"from_state": change.from_state.value, "to_state": change.to_state.value})
+            # Commissioning -> calibrating -> ok is routine; a flag or a blind node is not.
+            level = logging.INFO if change.to_state in ROUTINE_STATES else logging.WARNING
+            log.log(level, "state %s -> %s", change.from_state.value, change.to_state.value,
+                    extra={"from_state": change.from_state.value, "to_state": change.to_state.value})
         detection = verdict.detection
         return CycleOutcome(
             stored.measurement_id,

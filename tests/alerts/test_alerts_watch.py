@@ -97,3 +97,25 @@ def test_a_node_whose_offline_alarm_ended_with_its_decommissioning_is_reported_a
     with outbox_db.session() as session:
         assert open_alarms(session, "node-c").offline is not None
     assert check(outbox_db, T0 + timedelta(minutes=41)) == []
+
+
+def test_a_baseline_change_is_logged_as_routine_and_an_outage_as_a_warning(outbox_db, caplog):
+    """baseline_changed used to be logged at WARNING like an outage (issue 16, item 9)."""
+    import logging
+    import threading
+
+    from alerts.delivery import FleetWatcher
+    from db.baselines import set_active_baseline
+    from db.models import MeasurementKind
+    from tests.support.db_fixtures import store_sample
+
+    with outbox_db.write() as session:
+        row = store_sample(session, "node-a", kind=MeasurementKind.BASELINE, seed=1)
+        set_active_baseline(session, "node-a", row.id, created_by="gateway", reason="commissioning", now=T0)
+    watcher = FleetWatcher(SETTINGS, outbox_db, stop=threading.Event(), clock=lambda: T0 + timedelta(minutes=11))
+    watcher.watching_since = T0
+    with caplog.at_level(logging.DEBUG, logger="pipesentry"):
+        watcher.check_once()
+    levels = {r.event_kind: r.levelno for r in caplog.records if hasattr(r, "event_kind")}
+    assert levels[EventKind.BASELINE_CHANGED] == logging.INFO
+    assert levels[EventKind.NODE_OFFLINE] == logging.WARNING
