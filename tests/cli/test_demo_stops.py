@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from pipesentry.demo_progress import Progress
-from tests.support.api_fixtures import free_port
 from tests.support.process_harness import wait_until
 
 STARTUP_S = 120.0  # mock nodes, the gateway's schema, a key, the API: ~10 s alone, more on a busy machine
@@ -41,9 +41,13 @@ def _processes_mentioning(marker: str) -> list[int]:
 def test_a_stop_signal_stops_every_child_of_the_demo(tmp_path, stop_signal):
     out_dir = tmp_path / "demo-out"
     log = (tmp_path / "demo.log").open("wb")
+    taken = socket.socket()  # someone else's server on the port asked for: the demo says it moves
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
     demo = subprocess.Popen(
         [sys.executable, "-m", "pipesentry", "demo", "--duration-s", "600", "--out-dir", str(out_dir),
-         "--port", str(free_port())],
+         "--port", str(port)],
         stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
     )
     try:
@@ -57,7 +61,10 @@ def test_a_stop_signal_stops_every_child_of_the_demo(tmp_path, stop_signal):
         wait_until(lambda: not _processes_mentioning(str(out_dir)), 20, 0.2, what="no process of the demo left")
         output = (tmp_path / "demo.log").read_text()
         assert f"stopping on {signal.Signals(stop_signal).name}" in output and "stopped cleanly" in output
+        assert f"port {port} is taken on 127.0.0.1: the API and dashboard use port" in output
+        assert f"dashboard: http://127.0.0.1:{port}/" not in output
     finally:
+        taken.close()
         if demo.poll() is None:
             demo.kill()
             demo.wait(10)
