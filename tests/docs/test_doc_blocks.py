@@ -15,7 +15,7 @@ The rule, on purpose hard to dodge:
   ``make`` target, ``python -m`` module and repository path it names exists. Then it *runs*, in a
   fresh copy of the checkout (no ``out/``), with ``.venv/bin`` on the PATH, under ``set -e`` with
   ``curl`` failing on HTTP errors, unless it starts something long-running (``make``, ``docker``,
-  ``systemctl``, pytest, ``pipesentry demo|api|mock-node``, a gateway without ``--check``, or a
+  ``systemctl``, pytest, ``pipesentry demo|api|mock-node|alerts deliver``, a gateway without ``--check``, or a
   ``python -m`` action listed in ``LONG_RUNNING_MODULE_ACTIONS``).
   A block that talks to ``http://127.0.0.1:8000`` runs against a real API server on an ephemeral
   port over the test fleet's database, with ``psk_...`` replaced by an admin key and ``node-7``
@@ -57,7 +57,7 @@ DOC_API = "http://127.0.0.1:8000"
 REPO_DIRS = ("tests", "docs", "examples", "pipesentry", "deploy", "docker", "scripts", "bench", "imaging",
              "gateway", "service", "db", "alerts", "mocknode", "protocol")
 LONG_RUNNING = {"make", "docker", "systemctl", "journalctl", "pytest"}
-LONG_RUNNING_SUBCOMMANDS = {"demo", "api", "mock-node"}
+LONG_RUNNING_SUBCOMMANDS = {("demo",), ("api",), ("mock-node",), ("alerts", "deliver")}
 # `python -m <module> <action>` that serve forever or compute for minutes (checked, not started here).
 LONG_RUNNING_MODULE_ACTIONS = {("alerts", "deliver"), ("fullwave", "generate")}
 RUN_TIMEOUT_S = 120
@@ -171,9 +171,15 @@ def _check_text(block: Block, _tmp_path: Path, _request: pytest.FixtureRequest) 
 
 
 def _is_project_command(words: list[str]) -> bool:
-    program = Path(words[0]).name
-    return program in {"pipesentry", "make", "curl"} or (program.startswith("python") and "-m" in words[:2]) \
-        or words[0].startswith(".venv/bin/")
+    """A line a reader would paste into a shell: a pipesentry subcommand, a make target, a curl of a URL..."""
+    program, rest = Path(words[0]).name, words[1:]
+    if program == "pipesentry":
+        return bool(rest) and (rest[0].startswith("-") or rest[0] in _cli().commands)  # type: ignore[attr-defined]
+    if program == "make":
+        return bool(rest) and rest[0] in _make_targets()
+    if program == "curl":
+        return any(w.startswith(("http://", "https://", "$")) for w in rest)
+    return (program.startswith("python") and rest[:1] == ["-m"]) or words[0].startswith(".venv/bin/")
 
 
 # ------------------------------------------------------------------------------------------------ sh
@@ -228,8 +234,10 @@ def _long_running(words: list[str]) -> bool:
     if program.startswith("python") and words[1:2] == ["-m"] and tuple(words[2:4]) in LONG_RUNNING_MODULE_ACTIONS:
         return True
     if program == "pipesentry":
-        sub = next((w for w in words[1:] if not w.startswith("-")), "")
-        return sub in LONG_RUNNING_SUBCOMMANDS or (sub == "gateway" and "--check" not in words)
+        subs = tuple(w for w in words[1:3] if not w.startswith("-"))
+        if any(subs[: len(long)] == long for long in LONG_RUNNING_SUBCOMMANDS):
+            return True
+        return subs[:1] == ("gateway",) and "--check" not in words
     return False
 
 
