@@ -99,3 +99,26 @@ def test_the_simulator_docs_name_the_mock_node_command_and_every_fault_flag():
     assert "pipesentry mock-node" in text
     missing = [option for option in _option_names(_command("mock-node")) if f"`{option}" not in text]
     assert not missing, f"docs/simulator.md does not document {missing}"
+
+
+REPO_DIRS = ("tests", "docs", "examples", "pipesentry", "deploy", "docker", "scripts", "bench", "imaging", "gateway",
+             "service", "db", "alerts", "mocknode", "protocol", "fullwave", "retry_timing")
+
+
+def test_every_repository_path_the_docs_name_exists():
+    """A file named in prose (`tests/...`, `scripts/...`) moves with the code or the doc says where."""
+    import re
+
+    from tests.support.doc_blocks import doc_paths
+
+    missing = []
+    for doc in doc_paths():
+        for number, line in enumerate(doc.read_text(encoding="utf-8").splitlines(), 1):
+            for name in re.findall(r"`([^`\s]+)`", line):
+                path = name.split("::")[0].rstrip(".,;:)")
+                is_file_or_dir = "." in path.rsplit("/", 1)[-1] or path.endswith("/")  # not an MQTT topic
+                placeholder = "<" in path or "..." in path
+                if (path.split("/", 1)[0] in REPO_DIRS and "/" in path and is_file_or_dir and not placeholder
+                        and not list(REPO.glob(path))):
+                    missing.append(f"{doc.relative_to(REPO)}:{number}: {path}")
+    assert not missing, "the docs name paths that do not exist:\n" + "\n".join(missing)
