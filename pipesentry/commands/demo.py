@@ -17,7 +17,6 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -37,32 +36,51 @@ _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 class Stopped(Exception):
-    """A stop signal arrived; raised in the main thread so that the children are stopped on the way out."""
+    """A stop signal arrived; raised by the main loop so that the children are stopped on the way out."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
 
 
-@contextlib.contextmanager
-def stop_signals_raise() -> Iterator[None]:
-    """Turn SIGINT, SIGTERM and SIGHUP into :class:`Stopped` (once: a second signal while stopping is ignored,
-    so the clean-up it interrupted still runs to the end); the previous handlers come back afterwards."""
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP are noted, and :meth:`check` / :meth:`sleep` raise :class:`Stopped`.
 
-    def stopping(_signum: int, _frame: object) -> None:
-        pass  # already on the way out
+    The handler only records the signal: one that raised could fire inside a garbage collector's
+    callback, where Python prints the exception and drops it (the demo then ran on, deaf to the
+    next signal). A second signal while stopping changes nothing; the clean-up runs to the end."""
 
-    def stop(signum: int, _frame: object) -> None:
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, stopping)
-        raise Stopped(signum)
+    POLL_S = 0.2
 
-    previous = {sig: signal.signal(sig, stop) for sig in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> StopSignals:
+        def note(signum: int, _frame: object) -> None:
+            if self.signum is None:
+                self.signum = signum
+
+        self._previous = {sig: signal.signal(sig, note) for sig in STOP_SIGNALS}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+    def check(self) -> None:
+        if self.signum is not None:
+            raise Stopped(self.signum)
+
+    def sleep(self, seconds: float) -> None:
+        """Wait, answering a stop signal within POLL_S."""
+        deadline = time.monotonic() + seconds
+        while True:
+            self.check()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(self.POLL_S, left))
 
 
 def _die_with_parent() -> None:
@@ -111,7 +129,7 @@ def gateway_toml(db_path: Path, link_dir: Path, nodes, interval_s: float) -> str
     return "\n".join(lines)
 
 
-def _wait_for(predicate, timeout_s: float, what: str, children: list[Child]) -> None:
+def _wait_for(predicate, timeout_s: float, what: str, children: list[Child], signals: StopSignals) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if predicate():
@@ -119,7 +137,7 @@ def _wait_for(predicate, timeout_s: float, what: str, children: list[Child]) -> 
         for child in children:
             if not child.alive():
                 fail(f"{child.name} exited while waiting for {what}; see {child.log_path}")
-        time.sleep(0.1)
+        signals.sleep(0.1)
     fail(f"timed out waiting for {what}")
 
 
@@ -187,20 +205,22 @@ def demo(
     children: list[Child] = []
     started = time.monotonic()
     progress: Progress | None = None
-    with stop_signals_raise():
+    with StopSignals() as signals:
         try:
             children.append(Child("mock-node", [*exe, "mock-node", "--scenario", str(scenario),
                                                 "--link-dir", str(link_dir)], out_dir))
-            _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children)
+            _wait_for(lambda: all((link_dir / n).exists() for n in node_ids), 30, "the mock nodes' ports", children,
+                      signals)
             typer.echo(f"mock nodes up: {', '.join(f'{n} -> {os.path.realpath(link_dir / n)}' for n in node_ids)}")
             children.append(Child("gateway", [*exe, "gateway", "--config", str(config)], out_dir))
             db_url = f"sqlite:///{db_path}"
-            _wait_for(lambda: _schema_ready(db_url), 60, "the gateway's database", children)
+            _wait_for(lambda: _schema_ready(db_url), 60, "the gateway's database", children, signals)
             typer.echo(f"gateway polling every {interval_s:g} s; database {db_path}; logs in {out_dir}")
             key = subprocess.run(
                 [*exe, "apikey", "create", "--name", "demo", "--role", "operator", "--database-url", db_url],
                 capture_output=True, text=True, timeout=60, check=False,
             )
+            signals.check()  # a signal during the key's creation: that child got it too
             if key.returncode != 0:
                 fail(f"cannot create the demo API key: {key.stderr.strip()}")
             token = key.stdout.strip().splitlines()[-1]
@@ -209,7 +229,7 @@ def demo(
                 typer.echo(f"port {port} is taken on 127.0.0.1: the API and dashboard use port {api_port} instead "
                            "(--port chooses another)")
             children.append(Child("api", [*exe, "api", "--database-url", db_url, "--port", str(api_port)], out_dir))
-            _wait_for(lambda: _http_ok(f"http://127.0.0.1:{api_port}/healthz"), 60, "the API", children)
+            _wait_for(lambda: _http_ok(f"http://127.0.0.1:{api_port}/healthz"), 60, "the API", children, signals)
             typer.echo(f"dashboard: http://127.0.0.1:{api_port}/#key={token}")
             typer.echo(f"API:       http://127.0.0.1:{api_port}/api/v1/nodes  (Authorization: Bearer {token})")
             typer.echo(f"running for {duration_s:g} s (Ctrl-C stops earlier)\n")
@@ -219,7 +239,7 @@ def demo(
                     if not child.alive():
                         fail(f"{child.name} exited unexpectedly; see {child.log_path}")
                 progress.poll(elapsed_s=time.monotonic() - started)
-                time.sleep(1.0)
+                signals.sleep(1.0)
         except Stopped as stop:
             _say(f"\n{'interrupted' if stop.signum == signal.SIGINT else f'stopping on {stop}'}")
         finally:

@@ -101,3 +101,27 @@ def test_the_summary_measures_the_error_of_a_flagged_defect():
 
 def test_a_node_without_a_simulated_defect_has_no_verdict_line():
     assert Progress("sqlite:///unused.db", {"node-02": []}).verdict("node-02", None, 60.0) is None
+
+
+def test_a_signal_that_lands_in_a_finaliser_still_stops_the_demo():
+    """The handler used to raise: landing in a garbage collector's callback, the exception was printed
+    and dropped, and the demo ran on, deaf to every later signal (seen with SIGHUP)."""
+    import gc
+    import time
+
+    from pipesentry.commands.demo import Stopped, StopSignals
+
+    class SignalsInItsFinaliser:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(0.05)  # the handler runs here, inside the finaliser
+
+    before = signal.getsignal(signal.SIGHUP)
+    with StopSignals() as signals:
+        SignalsInItsFinaliser()
+        gc.collect()
+        started = time.monotonic()
+        with pytest.raises(Stopped, match="SIGHUP"):
+            signals.sleep(10.0)
+        assert time.monotonic() - started < 1.0
+    assert signal.getsignal(signal.SIGHUP) == before  # the previous handler is back

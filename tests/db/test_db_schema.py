@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -304,6 +305,11 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.e2e
 def test_command_line_upgrades_and_reports_the_revision(sqlite_url):
+    # `current` reads: a missing file is said, not created (it used to be, and reported "empty").
+    missing = _cli("current", "--url", sqlite_url)
+    assert missing.returncode == 2 and "no database file" in missing.stderr
+    assert not Path(sqlite_url.removeprefix("sqlite:///")).exists()
+    sqlite3.connect(sqlite_url.removeprefix("sqlite:///")).close()  # an empty database file
     assert _cli("current", "--url", sqlite_url).stdout.strip() == "empty"
     assert _cli("upgrade", "--url", sqlite_url).returncode == 0
     assert _cli("current", "--url", sqlite_url).stdout.strip() == head_revision()
