@@ -138,6 +138,8 @@ def _kind(annotation: object) -> str:
         return f"{inner} {lows[0]}..{highs[0]}" if lows and highs else inner
     if origin is list:
         return f"list of {_kind(args[0])}s" if args else "list"
+    if origin is dict:
+        return f"table of {_kind(args[1])} values" if args else "table"
     names = {bool: "`true` \\| `false`", int: "integer", float: "number", str: "text", SecretStr: "text (secret)"}
     if isinstance(annotation, type) and hasattr(annotation, "__members__"):  # an Enum
         return " \\| ".join(f'`"{m.value}"`' for m in annotation.__members__.values())

@@ -309,7 +309,7 @@ def _check_sh(block: Block, tmp_path: Path, request: pytest.FixtureRequest) -> N
     if any(_long_running(words) for _, words in commands):
         return  # checked above; not started here
     if shutil.which("jq") is None and "jq" in block.text:
-        message = "jq is not installed (scripts/ensure-jq.sh installs it)"
+        message = "jq is not installed (scripts/ensure-test-deps.sh installs it)"
         if in_ci():
             pytest.fail(message)
         pytest.skip(message)
