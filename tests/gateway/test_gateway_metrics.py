@@ -127,7 +127,8 @@ def test_the_example_in_docs_gateway_md_is_a_valid_config(tmp_path: Path):
     doc = (Path(__file__).resolve().parents[2] / "docs" / "gateway.md").read_text()
     example = doc.split("```toml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "gateway.toml"
-    path.write_text(example)
+    # --check requires the SQLite file's directory: the systemd unit's StateDirectory, created by systemd.
+    path.write_text(example.replace("/var/lib/pipesentry", str(tmp_path)))
     settings = load_settings(path)
     assert settings.metrics == MetricsSettings(enabled=True, host="127.0.0.1", port=9646)
     assert settings.nodes[0].interval_s == 60
