@@ -64,13 +64,13 @@ def test_an_unreachable_node_is_one_line_on_stderr_and_exit_2(url, says):
 
 def test_the_documented_example_runs_as_written(tmp_path):
     text = (REPO / "docs" / "protocol.md").read_text()
-    block = re.search(r"```\n(pipesentry mock-node .*?)```", text, re.DOTALL).group(1)
+    block = re.search(r"```sh\n(pipesentry mock-node .*?)```", text, re.DOTALL).group(1)
     mock_line, check_line = [line.split("#")[0].strip() for line in block.strip().splitlines()]
     assert mock_line == "pipesentry mock-node --tcp &"
     mock, url = start_mock(tmp_path)
     try:
         port = url.rsplit(":", 1)[1]
-        command = check_line.replace("<port>", port).replace("<pid>", str(mock.popen.pid))
+        command = check_line.replace("PORT", port).replace("$!", str(mock.popen.pid))  # as the shell would
         args = shlex.split(command)
         assert args[:2] == ["pipesentry", "node-check"]
         done = node_check(*args[2:])
