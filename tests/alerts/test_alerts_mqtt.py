@@ -95,7 +95,14 @@ def test_the_retained_state_is_the_nodes_current_state_not_its_last_event(broker
     prefix = unique_prefix()
     topic = f"{prefix}/node-a/state"
     settings = alerting(mqtt_sink(prefix))
-    worker = sink_worker(settings, "scada", outbox_db, stop)
+    sink = settings.sink("scada")
+    clock = Monotonic()  # the state documents are synced at most every state_interval_s of this clock
+    worker = SinkWorker(settings, sink, MqttTransport(sink, settings, outbox_db, monotonic=clock), outbox_db, stop=stop)
+
+    def deliver_later() -> None:
+        clock.now_s += 1.0
+        worker.run_once()
+
     try:
         with outbox_db.write() as session:
             store_sample(session, "node-a", detection=CALIBRATING,
@@ -103,28 +110,28 @@ def test_the_retained_state_is_the_nodes_current_state_not_its_last_event(broker
         put_events(outbox_db, [baseline_changed_event(settings, node_id="node-a", baseline_id=1, measurement_id=1,
                                                       previous_measurement_id=None, created_by="gateway",
                                                       reason="commissioning", state="calibrating")])
-        worker.run_once()
+        deliver_later()
         assert retained_now(topic, 1)[topic]["state"] == "calibrating"
         # calibrating -> ok raises no event; the retained state follows all the same
         with outbox_db.write() as session:
             sound = store_sample(session, "node-a", detection=SOUND,
                                  state_change=StateChangeInput(NodeState.CALIBRATING, NodeState.OK))
-        worker.run_once()
+        deliver_later()
         state = retained_now(topic, 1)[topic]
         assert state["state"] == "ok" and state["online"] is True and state["alarms"] == []
         assert state["latest"]["measurement_id"] == sound.id and state["latest"]["detection"]["peak_di"] == 0.01
         assert "kind" not in state and "event_id" not in state  # a state, not an event
         # damage raised: the state shows the open alarm; its end removes it
         (raised,) = put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("ok", "damage")])
-        worker.run_once()
-        worker.run_once()
+        deliver_later()
+        deliver_later()
         state = retained_now(topic, 1)[topic]
         assert state["state"] == "damage"
         assert [(a["alarm"], a["severity"], a["alarm_id"]) for a in state["alarms"]] == [
             ("damage", "critical", str(raised.id))]
         put_state_events(outbox_db, settings, node_ids=("node-a",), cycle=[("damage", "ok")], start_measurement_id=9)
-        worker.run_once()
-        worker.run_once()
+        deliver_later()
+        deliver_later()
         state = retained_now(topic, 1)[topic]
         assert state["state"] == "ok" and state["alarms"] == []
     finally:
