@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,31 +109,25 @@ def _direct_arrival(m: Measurement, env: np.ndarray, search_s: float | None) -> 
     return DirectArrival(amplitude, time_s)
 
 
-_SUMMARY_MEMO: OrderedDict[tuple, tuple[DirectArrival, np.ndarray]] = OrderedDict()
-SUMMARY_MEMO_SIZE = 64  # records whose direct arrival and median envelope are remembered (a node's baselines)
-
-
 def _summary(m: Measurement) -> tuple[DirectArrival, np.ndarray]:
-    """(direct arrival, median matched envelope over receivers) of a record, memoised by content.
+    """(direct arrival, median matched envelope over receivers) of a record, derived once per record.
 
-    A node's baselines are analysed again with every measurement; the key is a digest of the
-    traces plus every field the result depends on, so an equal record hits and nothing stale can.
+    A node's baselines are analysed again with every measurement: the result is kept with the
+    record (``Measurement.derived``), not in a module-wide cache, so threads imaging different
+    nodes share nothing. The key is a digest of the traces plus every field the result depends
+    on, so traces changed in place are analysed again and nothing stale is returned.
     """
     traces = np.ascontiguousarray(m.traces)
     key = (hashlib.sha1(traces.view(np.uint8), usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
            m.fs_hz, m.t0_s, m.tx_rx_distance_mm, m.velocity_m_s, m.excitation_hz, m.cycles)
-    hit = _SUMMARY_MEMO.get(key)
-    if hit is not None:
-        _SUMMARY_MEMO.move_to_end(key)
-        return hit
-    env = matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles)
-    median = np.median(env, axis=0)
-    median.setflags(write=False)
-    value = (_direct_arrival(m, env, None), median)
-    _SUMMARY_MEMO[key] = value
-    while len(_SUMMARY_MEMO) > SUMMARY_MEMO_SIZE:
-        _SUMMARY_MEMO.popitem(last=False)
-    return value
+
+    def compute() -> tuple[DirectArrival, np.ndarray]:
+        env = matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles)
+        median = np.median(env, axis=0)
+        median.setflags(write=False)
+        return _direct_arrival(m, env, None), median
+
+    return m.derived("arrival_summary", key, compute)
 
 
 def reference_amplitude(m: Measurement) -> float:

@@ -5,9 +5,13 @@ This is the in-memory form of the interchange format described in docs/formats.m
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
+
+T = TypeVar("T")
 
 DEFAULT_VELOCITY_M_S = 3130.0  # T(0,1) group velocity in steel (paper, section 2)
 
@@ -41,6 +45,8 @@ class Measurement:
     tx_axial_mm: float | None = None
     wall_mm: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
+    # What has been derived from this record (``derived``): kept with the record, not in a module.
+    _derived: dict[str, tuple[Hashable, Any]] = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         traces = np.asarray(self.traces)
@@ -100,6 +106,22 @@ class Measurement:
             and self.tx_axial_mm + self.tx_rx_distance_mm > self.pipe_length_mm
         ):
             raise MeasurementError("the Rx ring (tx_axial_mm + tx_rx_distance_mm) lies beyond pipe_length_mm")
+
+    def derived(self, name: str, key: Hashable, compute: Callable[[], T]) -> T:
+        """``compute()``, remembered with this record under ``name`` while ``key`` stays the same.
+
+        The memo belongs to the record, so there is no cache shared between records or threads:
+        a node's baseline library keeps what was derived from its baselines for as long as it
+        keeps them, and drops it with them. ``key`` names what the value depends on (e.g. a
+        digest of the traces, which a caller could change in place); a different key computes
+        again. Two threads asking at once may both compute; each stores a whole, equal value.
+        """
+        entry = self._derived.get(name)
+        if entry is not None and entry[0] == key:
+            return entry[1]
+        value = compute()
+        self._derived[name] = (key, value)
+        return value
 
     @property
     def n_rx(self) -> int:

@@ -1,5 +1,7 @@
 """The DI map: the fast production path agrees with Algorithm 1 as printed, on any geometry."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -7,7 +9,6 @@ from hypothesis import strategies as st
 
 from imaging.dimap import BaselineMismatch, compute_di_map, default_window_samples, literal_di_map
 from imaging.grid import Grid
-from imaging.measurement import Measurement
 from tests.support.synthetic import baseline_and_scatterer, measurement
 
 
@@ -106,10 +107,8 @@ def test_identical_measurements_give_an_all_zero_map():
 )
 def test_mismatched_baseline_is_refused(change, message):
     base, cur = baseline_and_scatterer(200, 90)
-    fields = {k: getattr(cur, k) for k in Measurement.__dataclass_fields__ if k != "extra"}
-    fields.update(change)
     with pytest.raises(BaselineMismatch, match=message):
-        compute_di_map(base, Measurement(**fields))
+        compute_di_map(base, dataclasses.replace(cur, **change))
 
 
 def test_different_record_lengths_are_refused():
