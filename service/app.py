@@ -14,7 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service import problems
 from service.database import DatabaseGate
 from service.deps import VerifiedKeys
-from service.limits import BodySizeLimit
+from service.limits import BodySizeLimit, RequestsInFlightLimit
 from service.maps import HeatmapRenderer
 from service.metrics import metrics_registry
 from service.routes import alerts, detections, keys, measurements, nodes
@@ -98,12 +98,13 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
-            allow_methods=["GET", "POST", "DELETE"],
+            allow_methods=["GET", "POST", "PATCH", "DELETE"],
             allow_headers=["Authorization", "X-API-Key", "Content-Type"],
             max_age=600,
         )
     app.add_middleware(SecurityHeaders, api_prefix=settings.base_path)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestsInFlightLimit, max_requests=settings.max_requests_in_flight)  # outermost
     app.openapi = lambda: _openapi_with_problems(app)  # type: ignore[method-assign]
     return app
 

@@ -1,9 +1,9 @@
-"""Request body size limit (413 problem), enforced on Content-Length and on the bytes actually sent."""
+"""Request limits: body size (413 problem, on Content-Length and on the bytes sent) and requests in flight (503)."""
 from __future__ import annotations
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.problems import PAYLOAD_TOO_LARGE, ApiProblem, problem_response
+from service.problems import PAYLOAD_TOO_LARGE, SERVER_BUSY, ApiProblem, problem_response
 
 
 class BodySizeLimit:
@@ -39,3 +39,32 @@ class BodySizeLimit:
             return message
 
         await self.app(scope, limited_receive, send)
+
+
+class RequestsInFlightLimit:
+    """At most ``max_requests`` requests in the application at once; the next get a 503 problem.
+
+    The overload guard uvicorn's ``limit_concurrency`` was, counting requests being handled only:
+    uvicorn's counts open connections too, so idle or half-open ones (slowloris) made every
+    request a 503 (service/connection_guard.py bounds those instead).
+    """
+
+    def __init__(self, app: ASGIApp, max_requests: int) -> None:
+        self.app = app
+        self.max_requests = max_requests
+        self.in_flight = 0  # one event loop: no lock needed
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        if self.in_flight >= self.max_requests:
+            response = problem_response(SERVER_BUSY, f"more than {self.max_requests} requests in progress; retry",
+                                        None, headers={"Retry-After": "1"})
+            await response(scope, receive, send)
+            return
+        self.in_flight += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.in_flight -= 1

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from db.errors import (
     BaselineError,
@@ -82,6 +83,7 @@ INVALID_CURSOR = ProblemKind("invalid-cursor", 400, "Malformed pagination cursor
 BAD_REQUEST = ProblemKind("bad-request", 400, "Bad request")
 BASELINE_REFUSED = ProblemKind("baseline-refused", 409, "This measurement cannot be the node's baseline")
 STORAGE_UNAVAILABLE = ProblemKind("storage-unavailable", 503, "The database is unavailable; retry later")
+SERVER_BUSY = ProblemKind("server-busy", 503, "Too many requests in progress; retry shortly")
 SCHEMA_OUT_OF_DATE = ProblemKind("schema-out-of-date", 503, "The database schema does not match this release")
 CORRUPT_DATA = ProblemKind("corrupt-data", 500, "Stored data failed its integrity check")
 INTERNAL = ProblemKind("internal-error", 500, "Internal error (logged on the server)")
@@ -143,13 +145,37 @@ def storage_problem(error: StorageError) -> ProblemKind:
     return INTERNAL
 
 
+# FastAPI's answer to a body it cannot decode (not UTF-8, say): said in our words instead.
+_FASTAPI_BODY_ERROR = "There was an error parsing the body"
+BODY_NOT_JSON = "the request body is not JSON in UTF-8"
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app answers on this request's path (for a 405's ``Allow``).
+
+    Starlette names only the methods of the first route that matched the path; a path served
+    by several routes (``GET`` and ``PATCH /nodes/{id}``) has them all.
+    """
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
+
+
 async def _on_http_exception(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     kind = exc.kind if isinstance(exc, ApiProblem) else _BY_STATUS.get(exc.status_code)
     if kind is None:
         kind = ProblemKind(f"http-{exc.status_code}", exc.status_code, str(exc.detail))
     detail = exc.detail if isinstance(exc.detail, str) else kind.title
-    return problem_response(kind, detail, request, headers=getattr(exc, "headers", None))
+    headers = dict(getattr(exc, "headers", None) or {})
+    if exc.status_code == 400 and detail == _FASTAPI_BODY_ERROR:
+        detail = BODY_NOT_JSON
+    if exc.status_code == 405:
+        headers["Allow"] = ", ".join(allowed_methods(request)) or headers.get("Allow", "")
+    return problem_response(kind, detail, request, headers=headers or None)
 
 
 async def _on_validation_error(request: Request, exc: Exception) -> JSONResponse:

@@ -27,6 +27,17 @@ class ApiSettings(BaseSettings):
     )
     dashboard_refresh_s: float = Field(10.0, ge=1.0, le=3600.0, description="how often the dashboard reloads its data")
     busy_timeout_ms: int = Field(5000, ge=0, description="SQLite: how long a write waits for the gateway's lock")
+    request_timeout_s: float = Field(
+        10.0, gt=0, le=300, description="a request's head and body must arrive within this long of the connection "
+        "opening (or of the previous response on it): slow or silent clients are answered 408 and closed"
+    )
+    max_connections: int = Field(
+        768, ge=1, le=100_000, description="open connections at most; beyond it the one waiting longest for its "
+        "request is closed (keep it below the process's open-file limit: 1024 under systemd by default)"
+    )
+    max_requests_in_flight: int = Field(
+        512, ge=1, le=100_000, description="requests handled at once at most; the next get a 503 server-busy problem"
+    )
     key_cache_ttl_s: float = Field(
         10.0, ge=0, le=300, description="a verified API key is trusted this long without a lookup; a key revoked "
         "outside this process stops working within it (0: look up every request)"

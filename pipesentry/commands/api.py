@@ -1,11 +1,14 @@
 """`pipesentry api`: serve the operator API and dashboard with uvicorn."""
 from __future__ import annotations
 
+import contextlib
 from typing import Annotated, Any
 
 import typer
 
 from pipesentry.errors import fail
+
+STARTUP_FAILURE = 3  # uvicorn's exit code when the server did not start
 
 
 def api(
@@ -25,6 +28,7 @@ def api(
     from pydantic import ValidationError
 
     from service.app import create_app
+    from service.server import uvicorn_config
     from service.settings import ApiSettings
 
     overrides: dict[str, Any] = {k: v for k, v in {"database_url": database_url, "host": host, "port": port}.items() if v is not None}
@@ -32,13 +36,8 @@ def api(
         settings = ApiSettings(**overrides)
     except ValidationError as exc:
         fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}" for e in exc.errors()))
-    uvicorn.run(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_level=log_level,
-        proxy_headers=False,
-        server_header=False,
-        limit_concurrency=512,
-        timeout_graceful_shutdown=5,
-    )
+    server = uvicorn.Server(uvicorn_config(create_app(settings), settings, log_level=log_level))
+    with contextlib.suppress(KeyboardInterrupt):
+        server.run()
+    if not server.started:  # as uvicorn.run: the port was taken or the app did not start
+        raise typer.Exit(STARTUP_FAILURE)

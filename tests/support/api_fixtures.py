@@ -28,6 +28,7 @@ from db.models import NodeRow, NodeState, Role
 from service.app import create_app
 from service.database import DatabaseGate
 from service.metrics import metrics_registry
+from service.server import uvicorn_config
 from service.settings import ApiSettings
 from tests.support.process_harness import (
     PYTHON,
@@ -212,10 +213,9 @@ class ApiServer:
     def __init__(self, settings: ApiSettings) -> None:
         self.settings = settings
         self.port = free_port()
-        config = uvicorn.Config(
-            create_app(settings), host="127.0.0.1", port=self.port, log_level="warning", lifespan="on"
-        )
-        self.server = uvicorn.Server(config)
+        # The same uvicorn settings as `pipesentry api` (the connection guard and its limits).
+        self.server = uvicorn.Server(uvicorn_config(create_app(settings), settings, port=self.port,
+                                                    log_level="warning"))
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
 
     @property
