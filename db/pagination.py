@@ -10,7 +10,7 @@ import base64
 import binascii
 import json
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any, Generic, TypeVar
 
 from sqlalchemy import Select, and_, or_
@@ -21,6 +21,9 @@ from db.errors import InvalidCursor
 T = TypeVar("T")
 MAX_PAGE_SIZE = 1000
 _CURSOR_VERSION = 1
+# Ids a cursor may name: the signed 64-bit range every backend stores (SQLite's rowid, BIGINT).
+_MIN_ID, _MAX_ID = -(2**63), 2**63 - 1
+MALFORMED_CURSOR = "malformed cursor: pass back the next_cursor of the previous page unchanged"
 
 
 @dataclass(frozen=True)
@@ -37,20 +40,27 @@ def encode_cursor(at: datetime, row_id: int) -> str:
 
 
 def decode_cursor(cursor: str) -> tuple[datetime, int]:
-    """(timestamp, id) of a cursor from :func:`encode_cursor`; raises :class:`InvalidCursor`."""
+    """(timestamp, id) of a cursor from :func:`encode_cursor`; raises :class:`InvalidCursor`.
+
+    The error says only that the cursor is not one of ours (never a decoder's message), and a
+    cursor naming an instant or id no database can compare with is refused here, not by the driver.
+    """
     try:
         padded = cursor + "=" * (-len(cursor) % 4)
         payload = json.loads(base64.urlsafe_b64decode(padded.encode("ascii")))
         if payload["v"] != _CURSOR_VERSION:
-            raise InvalidCursor(f"cursor version {payload['v']!r} is not supported")
+            raise InvalidCursor("cursor of another version: start from the first page again")
         at = datetime.fromisoformat(payload["t"])
+        if at.tzinfo is None or at.utcoffset() is None:
+            raise InvalidCursor(MALFORMED_CURSOR)
+        at = at.astimezone(UTC)
         row_id = payload["id"]
     except InvalidCursor:
         raise
-    except (ValueError, KeyError, TypeError, UnicodeError, binascii.Error) as error:
-        raise InvalidCursor(f"malformed cursor: {error}") from error
-    if at.tzinfo is None or not isinstance(row_id, int) or isinstance(row_id, bool):
-        raise InvalidCursor("malformed cursor: bad timestamp or id")
+    except (ValueError, KeyError, TypeError, UnicodeError, binascii.Error, OverflowError, RecursionError):
+        raise InvalidCursor(MALFORMED_CURSOR) from None
+    if not isinstance(row_id, int) or isinstance(row_id, bool) or not _MIN_ID <= row_id <= _MAX_ID:
+        raise InvalidCursor(MALFORMED_CURSOR)
     return at, row_id
 
 

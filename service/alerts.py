@@ -5,7 +5,7 @@ import base64
 import binascii
 import json
 import uuid
-from datetime import datetime
+from datetime import UTC, datetime
 
 from sqlalchemy import and_, or_, select
 from sqlalchemy.orm import Session, selectinload
@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session, selectinload
 from db.clock import utc_now
 from db.errors import InvalidCursor, NotFound
 from db.models import EventRow, Severity
-from db.pagination import MAX_PAGE_SIZE
+from db.pagination import MALFORMED_CURSOR, MAX_PAGE_SIZE
 from service import schemas
 
 
@@ -52,10 +52,14 @@ def _decode_cursor(cursor: str) -> tuple[datetime, uuid.UUID]:
         payload = json.loads(base64.urlsafe_b64decode((cursor + "=" * (-len(cursor) % 4)).encode("ascii")))
         at = datetime.fromisoformat(payload["t"])
         event_id = uuid.UUID(payload["id"])
-    except (ValueError, KeyError, TypeError, UnicodeError, binascii.Error, AttributeError) as error:
-        raise InvalidCursor(f"malformed cursor: {error}") from error
-    if at.tzinfo is None:
-        raise InvalidCursor("malformed cursor: timestamp without time zone")
+        if at.tzinfo is None or at.utcoffset() is None:
+            raise InvalidCursor(MALFORMED_CURSOR)
+        at = at.astimezone(UTC)
+    except InvalidCursor:
+        raise
+    except (ValueError, KeyError, TypeError, UnicodeError, binascii.Error, AttributeError, OverflowError,
+            RecursionError):
+        raise InvalidCursor(MALFORMED_CURSOR) from None
     return at, event_id
 
 

@@ -61,4 +61,5 @@ class DatabaseGate:
     def _refuse_missing_sqlite_file(self) -> None:
         url = make_url(self.url)
         if url.get_backend_name() == "sqlite" and url.database and not Path(url.database).exists():
-            raise DatabaseMissing(f"no database file at {url.database} (the gateway creates it on its first start)")
+            # The path stays on the server: /readyz and 401s answer callers without a key.
+            raise DatabaseMissing("no database file yet (the gateway creates it on its first start)")

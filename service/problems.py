@@ -150,18 +150,19 @@ _FASTAPI_BODY_ERROR = "There was an error parsing the body"
 BODY_NOT_JSON = "the request body is not JSON in UTF-8"
 
 
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
 def allowed_methods(request: Request) -> list[str]:
     """Every method some route of the app answers on this request's path (for a 405's ``Allow``).
 
     Starlette names only the methods of the first route that matched the path; a path served
-    by several routes (``GET`` and ``PATCH /nodes/{id}``) has them all.
+    by several routes (``GET`` and ``PATCH /nodes/{id}``) has them all. Asked of the router
+    itself, method by method, so that included routers are searched as they are for a request.
     """
-    methods: set[str] = set()
-    for route in request.app.router.routes:
-        match, _ = route.matches(request.scope)
-        if match != Match.NONE:
-            methods |= getattr(route, "methods", None) or set()
-    return sorted(methods)
+    routes = request.app.router.routes
+    return [method for method in _METHODS
+            if any(route.matches({**request.scope, "method": method})[0] == Match.FULL for route in routes)]
 
 
 async def _on_http_exception(request: Request, exc: Exception) -> JSONResponse:

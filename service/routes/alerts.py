@@ -2,15 +2,14 @@
 from __future__ import annotations
 
 import uuid
-from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends
 
 from db.models import Severity
 from service import alerts, schemas
 from service.deps import DatabaseDep, Operator, require_viewer
 from service.problems import problem_responses
-from service.routes.parameters import DEFAULT_LIMIT, Cursor, Limit
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, Limit, NodeIdFilter
 
 router = APIRouter(prefix="/alerts", tags=["alerts"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))
@@ -20,7 +19,7 @@ router = APIRouter(prefix="/alerts", tags=["alerts"], dependencies=[Depends(requ
 def list_alerts(
     database: DatabaseDep,
     status: schemas.AlertStatus | None = None,
-    node_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
+    node_id: NodeIdFilter = None,
     severity: Severity | None = None,
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,

@@ -1,15 +1,13 @@
 """Fleet-wide detections and defect estimates, latest first."""
 from __future__ import annotations
 
-from typing import Annotated
-
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends
 
 from db.models import NodeState
 from service import history, schemas
 from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
-from service.routes.parameters import DEFAULT_LIMIT, Cursor, End, Limit, Start
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, End, Limit, NodeIdFilter, Start
 
 router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))
@@ -18,7 +16,7 @@ router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depe
 @router.get("", responses=problem_responses(400, 404))
 def list_detections(
     database: DatabaseDep,
-    node_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
+    node_id: NodeIdFilter = None,
     state: NodeState | None = None,
     start: Start = None,
     end: End = None,

@@ -43,6 +43,7 @@ def test_missing_database_is_not_ready_and_is_never_created(tmp_path: Path):
         assert httpx.get(f"{server.base_url}/healthz").status_code == 200
         body = assert_problem(httpx.get(f"{server.base_url}/readyz"), 503, "storage-unavailable")
         assert "no database file" in body["detail"]
+        assert str(tmp_path) not in body["detail"]  # answered without a key: the server's paths stay on it
         response = httpx.get(f"{server.base_url}/api/v1/nodes", headers=bearer("psk_anything"))
         assert_problem(response, 503, "storage-unavailable")
         assert response.headers["retry-after"]
@@ -142,6 +143,11 @@ def test_cors_is_off_by_default_and_answers_only_configured_origins(fleet_copy):
     with ApiServer(ApiSettings(database_url=url, cors_origins=["https://ops.example"])) as server:
         allowed = httpx.options(f"{server.base_url}/api/v1/nodes", headers=preflight)
         assert allowed.headers["access-control-allow-origin"] == "https://ops.example"
+        for method in ("POST", "PATCH", "DELETE"):  # every method an operator's browser calls the API with
+            cross_site = httpx.options(f"{server.base_url}/api/v1/nodes/{DAMAGED_NODE}",
+                                       headers={**preflight, "Access-Control-Request-Method": method})
+            assert cross_site.status_code == 200, (method, cross_site.text)
+            assert method in cross_site.headers["access-control-allow-methods"]
         other = httpx.options(f"{server.base_url}/api/v1/nodes", headers={**preflight, "Origin": "https://evil.example"})
         assert "access-control-allow-origin" not in other.headers
 
