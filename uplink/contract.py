@@ -1,0 +1,263 @@
+"""The uplink's wire contract: one ``IngestBatch`` a gateway POSTs to the centre, and the answer.
+
+Pure pydantic v2 models (bottom layer: imports nothing of ours). The gateway serialises its
+database rows into these; the centre validates a whole batch before it writes any of it.
+
+Rules the models state and check:
+
+* every record carries a ``uid`` made at the edge, ``<gateway_id>/<kind>/<local id>``
+  (:func:`record_uid`), the same on every retry, so a replayed batch duplicates nothing: the
+  centre stores a uid once and counts a second sight as a duplicate. A uid must start with its
+  batch's gateway and its record's kind (a gateway cannot write under another's name).
+* records refer to each other by uid (a detection to its measurement, a baseline to its
+  measurement, ...); a reference must name a record earlier in the same batch or one the centre
+  already holds. The gateway therefore sends in its own order: node, then per node its
+  measurements with their maps, baselines, detections, state changes and alert events.
+* ``node`` records are the node's latest view, applied as an update (newest ``last_seen_at``
+  wins); every other kind is immutable once stored.
+* traces and map pixels travel as the gateway stores them (``shuffle-zlib-v1`` compressed
+  bytes, base64), with their SHA-256, which the centre checks; a measurement's traces may be
+  omitted (``data`` null) when the gateway's uplink policy sends no traces for it.
+"""
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import uuid
+from typing import Annotated, Any, Final, Literal
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator, model_validator
+
+CONTRACT_VERSION: Final = 1
+INGEST_PATH = "/api/v1/ingest/batches"
+MAX_RECORDS_PER_BATCH = 500
+# The request body after any gzip Content-Encoding is undone; the compressed body is bounded by it too.
+# ~100 measurements with traces (about 75 kB of base64 each for 8 channels x 12,000 samples).
+MAX_BODY_BYTES = 8 * 1024 * 1024
+CODEC_SHUFFLE_ZLIB_V1: Final = "shuffle-zlib-v1"
+PROBLEM_BAD_RECORD = "urn:pipesentry:problem:ingest-bad-record"
+
+_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"  # a gateway id, a site, a node id: safe in a uid and a URL
+GatewayId = Annotated[str, Field(pattern=_NAME, description="the gateway's id, unique in the fleet")]
+SiteName = Annotated[str, Field(pattern=_NAME, description="the site the gateway serves")]
+NodeId = Annotated[str, Field(pattern=_NAME, max_length=64)]
+Uid = Annotated[str, Field(min_length=5, max_length=200, description="<gateway_id>/<kind>/<local id>")]
+NodeStateName = Literal["commissioning", "calibrating", "ok", "suspected", "damage", "no_valid_baseline"]
+RecordKind = Literal["node", "measurement", "baseline", "detection", "state_change", "alert_event"]
+RECORD_KINDS: tuple[RecordKind, ...] = ("node", "measurement", "baseline", "detection", "state_change", "alert_event")
+
+
+def record_uid(gateway_id: str, kind: RecordKind, local_id: object) -> str:
+    """The stable uid of one record: ``<gateway_id>/<kind>/<local id>`` (the local id as the gateway keys it)."""
+    return f"{gateway_id}/{kind}/{local_id}"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Blob(_Model):
+    """Stored bytes of an array as the gateway keeps them; ``data`` is their base64, or null when not sent."""
+
+    codec: Literal["shuffle-zlib-v1"] = CODEC_SHUFFLE_ZLIB_V1
+    dtype: Literal["<i2", "<f4"]
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    nbytes: int = Field(ge=0, description="size of the decoded array in bytes")
+    data: str | None = Field(default=None, description="standard base64 of the stored (compressed) bytes")
+
+    @field_validator("data")
+    @classmethod
+    def _base64(cls, value: str | None) -> str | None:
+        if value is not None:
+            try:
+                base64.b64decode(value, validate=True)
+            except binascii.Error as exc:
+                raise ValueError(f"data is not standard base64: {exc}") from None
+        return value
+
+    @model_validator(mode="after")
+    def _checksum(self) -> Blob:
+        if self.data is not None and hashlib.sha256(self.raw()).hexdigest() != self.sha256:
+            raise ValueError("data does not match its sha256")
+        return self
+
+    def raw(self) -> bytes:
+        """The stored bytes (``b""`` only for an empty blob); raises ValueError when ``data`` was not sent."""
+        if self.data is None:
+            raise ValueError("the blob's data was not sent")
+        return base64.b64decode(self.data)
+
+    @classmethod
+    def of(cls, stored: bytes | None, *, dtype: Literal["<i2", "<f4"], sha256: str, nbytes: int) -> Blob:
+        """The wire form of stored bytes (``stored`` None: described, not sent)."""
+        data = None if stored is None else base64.b64encode(stored).decode("ascii")
+        return cls(dtype=dtype, sha256=sha256, nbytes=nbytes, data=data)
+
+
+class NodeRecord(_Model):
+    """A node's identity, geometry and latest state (an update: the newest ``last_seen_at`` wins)."""
+
+    kind: Literal["node"] = "node"
+    uid: Uid
+    node_id: NodeId
+    firmware: str = Field(max_length=64)
+    protocol_version: int
+    n_channels: int = Field(ge=1)
+    fs_hz: float = Field(gt=0)
+    geometry: dict[str, Any] = Field(description="ring angles, tx_rx_distance_mm, circumference_mm, ...")
+    first_seen_at: AwareDatetime
+    last_seen_at: AwareDatetime
+    online: bool
+    state: NodeStateName
+    latest_di_peak: float | None = None
+    latest_threshold: float | None = None
+    label: str | None = Field(default=None, max_length=128)
+    location: str | None = Field(default=None, max_length=256)
+    decommissioned_at: AwareDatetime | None = None
+
+
+class MeasurementSettings(_Model):
+    """How the acquisition was made (the measurement row's settings columns)."""
+
+    temperature_c: float | None = None
+    averaging: int
+    fs_hz: float = Field(gt=0)
+    t0_s: float
+    n_channels: int = Field(ge=1)
+    n_samples: int = Field(ge=1)
+    volts_per_code: float
+    excitation_hz: float
+    cycles: int
+
+
+class DiMapRecord(_Model):
+    """A damage-index map of the measurement it travels in (not a record of its own)."""
+
+    source: Literal["node", "gateway"]
+    method: str = Field(max_length=64)
+    grid: dict[str, Any]
+    baseline_measurement_uid: Uid | None = None
+    pixels: Blob
+    peak_di: float
+    created_at: AwareDatetime
+
+
+class MeasurementRecord(_Model):
+    kind: Literal["measurement"] = "measurement"
+    uid: Uid
+    node_id: NodeId
+    measurement_kind: Literal["baseline", "monitor"]
+    acquired_at: AwareDatetime
+    node_measurement_id: int
+    boot_id: int | None = None
+    settings: MeasurementSettings
+    velocity_m_s: float | None = None
+    wall_mm: float | None = None
+    traces: Blob = Field(description="the raw ADC codes; data null when the gateway sends no traces for it")
+    di_maps: list[DiMapRecord] = Field(default_factory=list)
+
+
+class BaselineRecord(_Model):
+    kind: Literal["baseline"] = "baseline"
+    uid: Uid
+    node_id: NodeId
+    measurement_uid: Uid
+    created_by: str = Field(max_length=128)
+    created_at: AwareDatetime
+    reason: str
+    active: bool
+    deactivated_at: AwareDatetime | None = None
+
+
+class DetectionRecord(_Model):
+    kind: Literal["detection"] = "detection"
+    uid: Uid
+    node_id: NodeId
+    measurement_uid: Uid
+    peak_di: float | None = None
+    threshold: float | None = None
+    axial_mm: float | None = None
+    angle_deg: float | None = None
+    state: NodeStateName
+    confidence: float | None = None
+    method: str | None = Field(default=None, max_length=32)
+    defects: list[Any] | None = None
+    sensor_faults: list[Any] | None = None
+    baseline_measurement_uid: Uid | None = None
+    stretch: float | None = None
+    abstain_reason: str | None = None
+    created_at: AwareDatetime
+
+
+class StateChangeRecord(_Model):
+    kind: Literal["state_change"] = "state_change"
+    uid: Uid
+    node_id: NodeId
+    measurement_uid: Uid | None = None
+    from_state: NodeStateName
+    to_state: NodeStateName
+    at: AwareDatetime
+
+
+class AlertEventRecord(_Model):
+    """An alert event from the gateway's outbox (its id is the edge's event id)."""
+
+    kind: Literal["alert_event"] = "alert_event"
+    uid: Uid
+    event_id: uuid.UUID
+    node_id: NodeId | None = None
+    event_kind: str = Field(max_length=64, description="the event's kind, e.g. damage_detected")
+    severity: Literal["info", "warning", "critical"]
+    payload: dict[str, Any]
+    created_at: AwareDatetime
+    deliver_centrally: bool = Field(
+        default=False,
+        description="true: the gateway leaves this alert to the centre's sinks (it does not send it itself)",
+    )
+
+
+Record = Annotated[
+    NodeRecord | MeasurementRecord | BaselineRecord | DetectionRecord | StateChangeRecord | AlertEventRecord,
+    Field(discriminator="kind"),
+]
+
+
+class IngestBatch(_Model):
+    """What a gateway POSTs to ``INGEST_PATH`` (JSON, optionally ``Content-Encoding: gzip``)."""
+
+    contract_version: Literal[1] = CONTRACT_VERSION
+    gateway_id: GatewayId
+    site: SiteName
+    batch_id: uuid.UUID = Field(description="made by the edge; a retry sends the same batch again")
+    records: list[Record] = Field(min_length=1, max_length=MAX_RECORDS_PER_BATCH)
+
+    @model_validator(mode="after")
+    def _uids_are_this_gateways(self) -> IngestBatch:
+        seen: set[str] = set()
+        for index, record in enumerate(self.records):
+            prefix = f"{self.gateway_id}/{record.kind}/"
+            if not record.uid.startswith(prefix) or len(record.uid) == len(prefix):
+                raise ValueError(f"record {index}: uid {record.uid!r} must be {prefix}<local id>")
+            if record.uid in seen:
+                raise ValueError(f"record {index}: uid {record.uid!r} appears twice in the batch")
+            seen.add(record.uid)
+        return self
+
+
+class IngestResult(_Model):
+    """The centre's answer to a stored batch (200): nothing of it was half-written."""
+
+    batch_id: uuid.UUID
+    accepted: int = Field(description="records stored now (nodes: created or updated)")
+    duplicates: int = Field(description="records the centre already held (a retried batch: all of them)")
+    stale: int = Field(default=0, description="node records older than the centre's view of the node, ignored")
+
+
+class BadRecord(_Model):
+    """The ``bad_record`` member of a 422/403/409 problem+json refusing a batch: which record, and why."""
+
+    index: int | None = Field(description="position in records; null when the batch itself is malformed")
+    uid: str | None = None
+    kind: str | None = None
+    error: str
