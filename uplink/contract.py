@@ -63,7 +63,7 @@ class Blob(_Model):
     codec: Literal["shuffle-zlib-v1"] = CODEC_SHUFFLE_ZLIB_V1
     dtype: Literal["<i2", "<f4"]
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
-    nbytes: int = Field(ge=0, description="size of the decoded array in bytes")
+    nbytes: int = Field(ge=0, description="length of the stored (compressed) bytes, as the gateway's row keeps it")
     data: str | None = Field(default=None, description="standard base64 of the stored (compressed) bytes")
 
     @field_validator("data")
@@ -78,8 +78,12 @@ class Blob(_Model):
 
     @model_validator(mode="after")
     def _checksum(self) -> Blob:
-        if self.data is not None and hashlib.sha256(self.raw()).hexdigest() != self.sha256:
-            raise ValueError("data does not match its sha256")
+        if self.data is not None:
+            stored = self.raw()
+            if len(stored) != self.nbytes:
+                raise ValueError(f"data is {len(stored)} bytes, nbytes says {self.nbytes}")
+            if hashlib.sha256(stored).hexdigest() != self.sha256:
+                raise ValueError("data does not match its sha256")
         return self
 
     def raw(self) -> bytes:
@@ -90,7 +94,7 @@ class Blob(_Model):
 
     @classmethod
     def of(cls, stored: bytes | None, *, dtype: Literal["<i2", "<f4"], sha256: str, nbytes: int) -> Blob:
-        """The wire form of stored bytes (``stored`` None: described, not sent)."""
+        """The wire form of stored bytes (``stored`` None: described by checksum and length, not sent)."""
         data = None if stored is None else base64.b64encode(stored).decode("ascii")
         return cls(dtype=dtype, sha256=sha256, nbytes=nbytes, data=data)
 

@@ -31,7 +31,7 @@ def node(gateway: str = "gw-a", node_id: str = "node-1") -> dict:
 
 
 def measurement(gateway: str = "gw-a", local_id: int = 1, data: bytes | None = STORED) -> dict:
-    traces = Blob.of(data, dtype="<i2", sha256=hashlib.sha256(STORED).hexdigest(), nbytes=4096)
+    traces = Blob.of(data, dtype="<i2", sha256=hashlib.sha256(STORED).hexdigest(), nbytes=len(STORED))
     return {"kind": "measurement", "uid": record_uid(gateway, "measurement", local_id), "node_id": "node-1",
             "measurement_kind": "monitor", "acquired_at": T0.isoformat(), "node_measurement_id": local_id,
             "settings": {"averaging": 4, "fs_hz": 1e6, "t0_s": 0.0, "n_channels": 8, "n_samples": 256,
@@ -85,6 +85,13 @@ def test_traces_that_do_not_match_their_checksum_are_refused():
     damaged["traces"]["data"] = base64.b64encode(STORED[:-1] + b"x").decode()
     with pytest.raises(ValidationError, match="does not match its sha256"):
         IngestBatch.model_validate(batch(damaged))
+
+
+def test_traces_whose_length_differs_from_nbytes_are_refused():
+    short = measurement()
+    short["traces"]["nbytes"] += 1
+    with pytest.raises(ValidationError, match="nbytes says"):
+        IngestBatch.model_validate(batch(short))
 
 
 def test_an_unknown_kind_an_unknown_field_and_a_naive_time_are_refused():
