@@ -23,9 +23,14 @@ def hash_token(token: str) -> str:
 
 
 def create_api_key(
-    session: Session, *, name: str, role: Role, now: datetime | None = None
+    session: Session, *, name: str, role: Role, site: str | None = None, now: datetime | None = None
 ) -> tuple[ApiKeyRow, str]:
-    """Store a new key and return it with the token (which is not stored anywhere)."""
+    """Store a new key and return it with the token (which is not stored anywhere).
+
+    A ``gateway`` key needs the ``site`` it may write for; no other role has one.
+    """
+    if (role is Role.GATEWAY) != (site is not None):
+        raise ValueError("a gateway key needs its site, and only a gateway key has one")
     token = TOKEN_PREFIX + secrets.token_urlsafe(TOKEN_BYTES)
     row = ApiKeyRow(
         name=name,
@@ -34,6 +39,7 @@ def create_api_key(
         key_prefix=token[:DISPLAY_PREFIX_CHARS],
         created_at=now or utc_now(),
         revoked_at=None,
+        site=site,
     )
     session.add(row)
     session.flush()

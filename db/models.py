@@ -76,6 +76,7 @@ class Role(StrEnum):
     VIEWER = "viewer"
     OPERATOR = "operator"
     ADMIN = "admin"
+    GATEWAY = "gateway"  # a gateway reporting to the central site: ingest only, its own site only
 
 
 def _enum(enum_cls: type[StrEnum], name: str) -> Enum:
@@ -100,6 +101,7 @@ class NodeRow(Base):
     """One FPGA node as last reported by its INFO message, plus the gateway's view of it."""
 
     __tablename__ = "nodes"
+    __table_args__ = (Index("ix_nodes_site_gateway_id", "site", "gateway_id"),)
 
     node_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     port_url: Mapped[str] = mapped_column(String(255))
@@ -134,6 +136,9 @@ class NodeRow(Base):
     last_reboot_at: Mapped[datetime | None]
     applied_settings: Mapped[dict[str, Any] | None] = mapped_column(json_type())  # CONFIGURE_REPLY
     link_problems: Mapped[list[Any] | None] = mapped_column(json_type())  # identity, settings not applied
+    # At the central site (revision 0006): where the node reports from; NULL on a gateway's own database.
+    site: Mapped[str | None] = mapped_column(String(64))
+    gateway_id: Mapped[str | None] = mapped_column(String(64))
 
 
 class MeasurementRow(Base):
@@ -293,6 +298,8 @@ class EventRow(Base):
     acknowledged_by: Mapped[str | None] = mapped_column(String(128))
     resolved_at: Mapped[datetime | None]
     resolved_by: Mapped[str | None] = mapped_column(String(128))
+    # "edge": ingested from a gateway (revision 0006; docs/alerting.md says who sends it); NULL: raised here.
+    origin: Mapped[str | None] = mapped_column(String(16))
 
     deliveries: Mapped[list[DeliveryRow]] = relationship(back_populates="event", order_by="DeliveryRow.id")
 
@@ -329,3 +336,17 @@ class ApiKeyRow(Base):
     key_prefix: Mapped[str] = mapped_column(String(16))
     created_at: Mapped[datetime]
     revoked_at: Mapped[datetime | None]
+    site: Mapped[str | None] = mapped_column(String(64))  # a gateway key's site (revision 0006)
+
+
+class IngestedRecordRow(Base):
+    """A record the central site received from an edge, by its edge-made uid: stored once, ever."""
+
+    __tablename__ = "ingested_records"
+
+    uid: Mapped[str] = mapped_column(String(200), primary_key=True)
+    gateway_id: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(32))
+    central_id: Mapped[str] = mapped_column(String(64))  # the row's id here (a measurement's, an event's, ...)
+    batch_id: Mapped[uuid.UUID] = mapped_column(Uuid)
+    stored_at: Mapped[datetime]

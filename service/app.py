@@ -14,10 +14,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service import problems
 from service.database import DatabaseGate
 from service.deps import VerifiedKeys
+from service.ingest import IngestGate
 from service.limits import BodySizeLimit, RequestsInFlightLimit
 from service.maps import HeatmapRenderer
 from service.metrics import metrics_registry
-from service.routes import alerts, detections, keys, measurements, nodes
+from service.routes import alerts, detections, ingest, keys, measurements, nodes
 from service.routes.api_docs import install_api_docs
 from service.routes.dashboard import STATIC_DIR, dashboard_router
 from service.routes.health import health_router
@@ -84,9 +85,10 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
     app.state.heatmaps = HeatmapRenderer()
     app.state.verified_keys = VerifiedKeys(settings.key_cache_ttl_s)
     app.state.metrics = metrics_registry(gate)
+    app.state.ingest_gate = IngestGate(settings.ingest_concurrency)
 
     problems.install_problem_handlers(app)
-    for router in (nodes.router, measurements.router, detections.router, alerts.router, keys.router):
+    for router in (nodes.router, measurements.router, detections.router, alerts.router, keys.router, ingest.router):
         app.include_router(router, prefix=settings.base_path)
     app.include_router(health_router(settings))
     app.include_router(dashboard_router(settings))
@@ -103,7 +105,8 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
             max_age=600,
         )
     app.add_middleware(SecurityHeaders, api_prefix=settings.base_path)
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
+                       larger={f"{settings.base_path}/ingest/batches": settings.ingest_max_body_bytes})
     app.add_middleware(RequestsInFlightLimit, max_requests=settings.max_requests_in_flight)  # outermost
     app.openapi = lambda: _openapi_with_problems(app)  # type: ignore[method-assign]
     return app
@@ -123,6 +126,7 @@ def _openapi_with_problems(app: FastAPI) -> dict[str, Any]:
         definition = model.model_json_schema(ref_template="#/components/schemas/{model}")
         components.update(definition.pop("$defs", {}))
         components[model.__name__] = definition
+    components.update(ingest.batch_schema_components())
     components.pop("HTTPValidationError", None)
     components.pop("ValidationError", None)
     validation = {

@@ -18,7 +18,7 @@ from service.database import DatabaseGate
 from service.problems import FORBIDDEN, UNAUTHORIZED, ApiProblem
 from service.settings import ApiSettings
 
-ROLE_RANK = {Role.VIEWER: 0, Role.OPERATOR: 1, Role.ADMIN: 2}
+ROLE_RANK = {Role.GATEWAY: -1, Role.VIEWER: 0, Role.OPERATOR: 1, Role.ADMIN: 2}  # a gateway key reads nothing
 MAX_TOKEN_CHARS = 256  # our tokens are ~47 characters; anything far longer is not one
 
 bearer_scheme = HTTPBearer(auto_error=False, description="`Authorization: Bearer <key>`")
@@ -32,6 +32,7 @@ class Caller:
     key_id: int
     name: str
     role: Role
+    site: str | None = None  # a gateway key's site
 
     def allows(self, needed: Role) -> bool:
         return ROLE_RANK[self.role] >= ROLE_RANK[needed]
@@ -113,7 +114,7 @@ async def verified_keys(request: Request) -> VerifiedKeys:
 def _look_up_key(database: Database, token: str) -> Caller | None:
     with database.session() as session:
         row = authenticate_api_key(session, token)
-        return None if row is None else Caller(key_id=row.id, name=row.name, role=row.role)
+        return None if row is None else Caller(key_id=row.id, name=row.name, role=row.role, site=row.site)
 
 
 async def current_caller(
@@ -146,9 +147,17 @@ def require(role: Role) -> Callable[[Caller], Awaitable[Caller]]:
     return check
 
 
+async def require_gateway(caller: Annotated[Caller, Depends(current_caller)]) -> Caller:
+    """Only a gateway key (scoped to its site) may ingest."""
+    if caller.role is not Role.GATEWAY:
+        raise ApiProblem(FORBIDDEN, f"needs a gateway key; this key is {caller.role.value}")
+    return caller
+
+
 require_viewer = require(Role.VIEWER)
 require_operator = require(Role.OPERATOR)
 require_admin = require(Role.ADMIN)
 Viewer = Annotated[Caller, Depends(require_viewer)]
 Operator = Annotated[Caller, Depends(require_operator)]
 Admin = Annotated[Caller, Depends(require_admin)]
+GatewayCaller = Annotated[Caller, Depends(require_gateway)]

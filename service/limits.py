@@ -7,24 +7,29 @@ from service.problems import PAYLOAD_TOO_LARGE, SERVER_BUSY, ApiProblem, problem
 
 
 class BodySizeLimit:
-    """Refuses bodies over ``max_bytes``: declared ones at once, chunked ones as they arrive."""
+    """Refuses bodies over ``max_bytes``: declared ones at once, chunked ones as they arrive.
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    ``larger``: paths allowed a larger limit of their own (the ingest of gateways' batches).
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int, larger: dict[str, int] | None = None) -> None:
         self.app = app
-        self.max_bytes = max_bytes
+        self.default_max_bytes = max_bytes
+        self.larger = dict(larger or {})
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        max_bytes = self.larger.get(scope["path"], self.default_max_bytes)
         declared = dict(scope.get("headers", ())).get(b"content-length")
         if declared is not None:
             try:
-                too_large = int(declared) > self.max_bytes
+                too_large = int(declared) > max_bytes
             except ValueError:
                 too_large = False  # the server rejects a malformed Content-Length itself
             if too_large:
-                response = problem_response(PAYLOAD_TOO_LARGE, f"the request body exceeds {self.max_bytes} bytes", None)
+                response = problem_response(PAYLOAD_TOO_LARGE, f"the request body exceeds {max_bytes} bytes", None)
                 await response(scope, receive, send)
                 return
         received = 0
@@ -34,8 +39,8 @@ class BodySizeLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    raise ApiProblem(PAYLOAD_TOO_LARGE, f"the request body exceeds {self.max_bytes} bytes")
+                if received > max_bytes:
+                    raise ApiProblem(PAYLOAD_TOO_LARGE, f"the request body exceeds {max_bytes} bytes")
             return message
 
         await self.app(scope, limited_receive, send)

@@ -306,6 +306,7 @@ class ApiKey(_Out):
     id: int
     name: str
     role: Role
+    site: str | None = Field(None, description="a gateway key's site: the only one it may write for")
     key_prefix: str = Field(description="first characters of the key, to recognise it")
     created_at: datetime
     revoked_at: datetime | None
@@ -316,6 +317,14 @@ class ApiKeyCreate(BaseModel):
 
     name: str = Field(min_length=1, max_length=128, pattern=r"^[^\x00-\x1f\x7f]+$")
     role: Role
+    site: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+                             description="required for a gateway key, refused for any other")
+
+    @model_validator(mode="after")
+    def _site_for_gateway_keys(self) -> ApiKeyCreate:
+        if (self.role is Role.GATEWAY) != (self.site is not None):
+            raise ValueError("a gateway key needs its site, and only a gateway key has one")
+        return self
 
 
 class ApiKeyCreated(ApiKey):

@@ -43,6 +43,20 @@ class ApiSettings(BaseSettings):
         "outside this process stops working within it (0: look up every request)"
     )
 
+    # The central site (docs/deploy.md): gateways POST their records to /ingest/batches.
+    ingest_max_body_bytes: int = Field(
+        8 * 1024 * KIB, ge=KIB, le=64 * 1024 * KIB,
+        description="an ingest batch's body, after gzip is undone, larger gets 413 (the contract's limit: 8 MiB)",
+    )
+    ingest_concurrency: int = Field(
+        4, ge=1, le=64, description="ingest batches stored at once per worker; more get 429 with Retry-After"
+    )
+    ingest_retry_after_s: int = Field(2, ge=1, le=600, description="Retry-After of a 429 from a busy ingest")
+    central_alert_sinks: list[str] = Field(
+        default_factory=list, description="sinks the centre delivers a gateway's alerts to when the gateway leaves "
+        "them to the centre (names of `alerts deliver`'s sinks; empty: the centre sends no edge alert)",
+    )
+
     @field_validator("database_url")
     @classmethod
     def _usable_database_url(cls, value: str) -> str:

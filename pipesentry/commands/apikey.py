@@ -49,10 +49,13 @@ def _database(url: str | None) -> Iterator[Database]:
 @apikey_app.command("create")
 def create(
     name: Annotated[str, typer.Option(help="who or what uses the key (recorded with baseline changes etc.)")],
-    role: Annotated[str, typer.Option(help="viewer | operator | admin")] = "viewer",
+    role: Annotated[str, typer.Option(help="viewer | operator | admin | gateway (a gateway reporting to this central site)")] = "viewer",
+    site: Annotated[str | None, typer.Option(help="a gateway key's site: the only one it may write for (needed with --role gateway)")] = None,
     database_url: DatabaseUrl = None,
 ) -> None:
     """Create a key and print it once (only its hash is stored)."""
+    import re
+
     from db.api_keys import create_api_key
     from db.models import Role
 
@@ -62,11 +65,16 @@ def create(
         fail(f"--role must be one of {', '.join(r.value for r in Role)}, got {role!r}")
     if not name.strip() or len(name) > 128:
         fail("--name must be 1..128 characters")
+    if (parsed is Role.GATEWAY) != (site is not None):
+        fail("--site is needed with --role gateway, and only with it")
+    if site is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", site):
+        fail(f"--site must be 1..64 letters, digits, '.', '_' or '-', starting with a letter or digit; got {site!r}")
     with _database(database_url) as database:
         with database.write() as session:
-            row, token = create_api_key(session, name=name, role=parsed)
+            row, token = create_api_key(session, name=name, role=parsed, site=site)
             key_id = row.id
-    typer.echo(f"created key {key_id} ({name}, {parsed.value}); it is shown only now:", err=True)
+    scope = f", site {site}" if site else ""
+    typer.echo(f"created key {key_id} ({name}, {parsed.value}{scope}); it is shown only now:", err=True)
     typer.echo(token)
 
 
@@ -77,10 +85,12 @@ def list_keys(database_url: DatabaseUrl = None) -> None:
 
     with _database(database_url) as database:
         with database.session() as session:
-            rows = [(k.id, k.key_prefix, k.role.value, k.name, k.created_at, k.revoked_at) for k in list_api_keys(session)]
-    typer.echo("id\tprefix\trole\tname\tcreated_at\trevoked_at")
-    for key_id, prefix, role, name, created, revoked in rows:
-        typer.echo(f"{key_id}\t{prefix}\t{role}\t{name}\t{created.isoformat()}\t{revoked.isoformat() if revoked else '-'}")
+            rows = [(k.id, k.key_prefix, k.role.value, k.site, k.name, k.created_at, k.revoked_at)
+                    for k in list_api_keys(session)]
+    typer.echo("id\tprefix\trole\tsite\tname\tcreated_at\trevoked_at")
+    for key_id, prefix, role, site, name, created, revoked in rows:
+        typer.echo(f"{key_id}\t{prefix}\t{role}\t{site or '-'}\t{name}\t{created.isoformat()}\t"
+                   f"{revoked.isoformat() if revoked else '-'}")
 
 
 @apikey_app.command("revoke")

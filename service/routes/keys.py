@@ -26,7 +26,7 @@ def list_keys(database: DatabaseDep) -> list[schemas.ApiKey]:
 @router.post("", status_code=status.HTTP_201_CREATED, responses=problem_responses(413))
 def create_key(body: schemas.ApiKeyCreate, _: Admin, database: DatabaseDep) -> schemas.ApiKeyCreated:
     with database.write() as session:
-        row, token = create_api_key(session, name=body.name, role=body.role)
+        row, token = create_api_key(session, name=body.name, role=body.role, site=body.site)
         return schemas.ApiKeyCreated(**schemas.ApiKey.model_validate(row).model_dump(), token=token)
 
 

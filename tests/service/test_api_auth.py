@@ -1,6 +1,7 @@
 """Role boundaries: nothing is read or changed without a key, and each role gets exactly its share.
 
-viewer reads; operator also changes baselines and handles alerts; admin also manages keys and nodes.
+viewer reads; operator also changes baselines and handles alerts; admin also manages keys and nodes;
+a gateway key (scoped to its site) only ingests its gateway's batches at a central site.
 Only /healthz, /readyz and the dashboard's static shell answer without a key.
 """
 from __future__ import annotations
@@ -43,11 +44,14 @@ REQUIRED_ROLE = {
     ("get", "/api/v1/keys"): "admin",
     ("post", "/api/v1/keys"): "admin",
     ("delete", "/api/v1/keys/{key_id}"): "admin",
+    ("post", "/api/v1/ingest/batches"): "gateway",
     ("get", "/metrics"): "viewer",
     ("get", "/healthz"): None,
     ("get", "/readyz"): None,
 }
-WEAKER = {"viewer": [], "operator": ["viewer"], "admin": ["viewer", "operator"]}
+# A gateway key (the central site's ingest) reads and changes nothing else; no other key ingests.
+WEAKER = {"viewer": ["gateway"], "operator": ["gateway", "viewer"], "admin": ["gateway", "viewer", "operator"],
+          "gateway": ["viewer", "operator", "admin"]}
 # Bodies valid enough to pass validation, pointing at nothing that exists: a permitted
 # call answers 404 or 201, never changes the shared fleet in a way other tests notice.
 BODIES = {
@@ -102,7 +106,8 @@ def test_unknown_key_is_401(api: Api, method, path):
 def test_weaker_role_is_403(api: Api, method, path, weaker):
     with api.client(getattr(api.keys, weaker)) as client:
         body = assert_problem(call(client, method, path), 403, "forbidden")
-    assert REQUIRED_ROLE[(method, path)] in body["detail"]
+    # A gateway key is stopped at the first gate it meets (a router's viewer gate, before an admin one).
+    assert REQUIRED_ROLE[(method, path)] in body["detail"] or "this key is gateway" in body["detail"]
 
 
 @pytest.mark.parametrize(("method", "path"), [k for k, role in REQUIRED_ROLE.items() if role])

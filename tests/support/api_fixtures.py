@@ -189,16 +189,19 @@ class Keys:
     viewer: str
     operator: str
     admin: str
+    gateway: str  # of site "test-site": the central site's ingest
 
 
 def create_test_keys(url: str) -> Keys:
     database = open_database(url, upgrade=False)
     try:
         with database.write() as session:
-            tokens = {role: create_api_key(session, name=f"test-{role.value}", role=role)[1] for role in Role}
+            tokens = {role: create_api_key(session, name=f"test-{role.value}", role=role)[1]
+                      for role in (Role.VIEWER, Role.OPERATOR, Role.ADMIN)}
+            tokens[Role.GATEWAY] = create_api_key(session, name="test-gateway", role=Role.GATEWAY, site="test-site")[1]
     finally:
         database.dispose()
-    return Keys(tokens[Role.VIEWER], tokens[Role.OPERATOR], tokens[Role.ADMIN])
+    return Keys(tokens[Role.VIEWER], tokens[Role.OPERATOR], tokens[Role.ADMIN], tokens[Role.GATEWAY])
 
 
 def free_port() -> int:
