@@ -9,6 +9,7 @@ import base64
 import binascii
 import re
 from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
@@ -179,3 +180,27 @@ def webhook_key(secret: SecretStr | str) -> bytes:
     if not 24 <= len(key) <= 64:
         raise ValueError(f"webhook secret key must be 24 to 64 bytes, got {len(key)}")
     return key
+
+
+def sink_secrets(sink: AnySinkSettings) -> list[str]:
+    """What of a sink's settings is a credential: never to be logged, stored in an error or shown.
+
+    A Slack webhook's URL and its path, webhook secrets, MQTT passwords, and the password and
+    query of any URL (``https://user:pass@host/?token=...``).
+    """
+    secrets: list[str] = []
+    url: str | None = None
+    if isinstance(sink, SlackSinkSettings):
+        url = sink.url.get_secret_value()
+        secrets += [url, urlsplit(url).path]
+    elif isinstance(sink, WebhookSinkSettings):
+        url = sink.url
+        secrets.append(sink.secret.get_secret_value())
+    elif isinstance(sink, AlertmanagerSinkSettings):
+        url = sink.url
+    elif isinstance(sink, MqttSinkSettings) and sink.password is not None:
+        secrets.append(sink.password.get_secret_value())
+    if url is not None:
+        parts = urlsplit(url)
+        secrets += [p for p in (parts.password, parts.query) if p]
+    return secrets

@@ -30,6 +30,7 @@ from alerts.config import (
     MqttSinkSettings,
     SlackSinkSettings,
     WebhookSinkSettings,
+    sink_secrets,
 )
 from alerts.errors import DeliveryFailed, EndpointGone
 from alerts.events import EventKind, log_level, sink_disabled_event
@@ -50,6 +51,7 @@ from alerts.webhook import WebhookTransport
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
+from db.log_text import mask_secret
 from db.measurements import add_event_once
 
 log = logging.getLogger("pipesentry.alerts")
@@ -89,7 +91,10 @@ class Beats(Protocol):
 
 
 def make_transport(sink: AnySinkSettings, alerting: AlertingSettings, database: Database) -> SinkTransport:
-    """The transport for one configured sink (Alertmanager and MQTT also read the database: what is active)."""
+    """The transport for one configured sink (Alertmanager and MQTT also read the database: what is active).
+
+    Its secrets are masked in every log line and stored error from now on (db/log_text.py)."""
+    mask_secret(*sink_secrets(sink))
     if isinstance(sink, WebhookSinkSettings):
         return WebhookTransport(sink)
     if isinstance(sink, AlertmanagerSinkSettings):

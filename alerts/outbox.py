@@ -21,6 +21,7 @@ from sqlalchemy import CursorResult, Result, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
+from db.log_text import redact
 from db.models import DeliveryRow, DeliveryStatus, EventRow, Severity
 
 
@@ -105,7 +106,7 @@ def mark_delivered(session: Session, delivery_id: int) -> bool:
 
 def mark_failed(session: Session, delivery_id: int, error: str, *, retry_at: datetime | None) -> bool:
     """Record a failed attempt: retry at ``retry_at``, or dead when it is None."""
-    values: dict[str, Any] = {"last_error": error[:2000]}
+    values: dict[str, Any] = {"last_error": redact(error)[:2000]}  # shown by the API: no credentials
     if retry_at is None:
         values.update(status=DeliveryStatus.DEAD, next_attempt_at=None)
     else:
@@ -124,7 +125,7 @@ def kill_pending(session: Session, sink: str, reason: str) -> int:
     result = session.execute(
         update(DeliveryRow)
         .where(DeliveryRow.sink == sink, DeliveryRow.status == DeliveryStatus.PENDING)
-        .values(status=DeliveryStatus.DEAD, next_attempt_at=None, last_error=reason[:2000])
+        .values(status=DeliveryStatus.DEAD, next_attempt_at=None, last_error=redact(reason)[:2000])
         .execution_options(synchronize_session=False)
     )
     return _affected(result)

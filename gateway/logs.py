@@ -1,4 +1,7 @@
-"""Structured logs: every line carries the node id (or ``-`` for the daemon itself); JSON optional."""
+"""Structured logs: every line carries the node id (or ``-`` for the daemon itself); JSON optional.
+
+Every line is one line and shows no secret: db/log_text.py escapes control characters in
+messages and masks credentials (httpx's per-request INFO line, which names the URL, is off)."""
 from __future__ import annotations
 
 import contextvars
@@ -7,6 +10,8 @@ import logging
 import sys
 from contextlib import contextmanager
 from datetime import UTC, datetime
+
+from db.log_text import SafeFormatter, quiet_url_loggers, redact, safe_text
 
 current_node: contextvars.ContextVar[str] = contextvars.ContextVar("current_node", default="-")
 
@@ -19,7 +24,9 @@ class _NodeFilter(logging.Filter):
 
 
 class JsonFormatter(logging.Formatter):
-    """One JSON object per line: ts, level, logger, node, msg, and any ``extra=`` fields."""
+    """One JSON object per line: ts, level, logger, node, msg, and any ``extra=`` fields.
+
+    Texts are redacted and on one line (db/log_text.py), as in the plain format."""
 
     _STANDARD = set(logging.LogRecord("", 0, "", 0, "", (), None).__dict__) | {"message", "node", "asctime"}
 
@@ -29,13 +36,14 @@ class JsonFormatter(logging.Formatter):
             "level": record.levelname,
             "logger": record.name,
             "node": getattr(record, "node", "-"),
-            "msg": record.getMessage(),
+            "msg": safe_text(record.getMessage()),
         }
         for key, value in record.__dict__.items():
             if key not in self._STANDARD and not key.startswith("_"):
-                doc[key] = value if isinstance(value, (str, int, float, bool, type(None))) else str(value)
+                text = value if isinstance(value, (int, float, bool, type(None))) else safe_text(str(value))
+                doc[key] = text
         if record.exc_info:
-            doc["exc"] = self.formatException(record.exc_info)
+            doc["exc"] = redact(self.formatException(record.exc_info))
         return json.dumps(doc)
 
 
@@ -46,12 +54,13 @@ def setup_logging(level: str = "INFO", json_lines: bool = False, stream=None) ->
     if json_lines:
         handler.setFormatter(JsonFormatter())
     else:
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s node=%(node)s %(name)s: %(message)s"))
+        handler.setFormatter(SafeFormatter("%(asctime)s %(levelname)s node=%(node)s %(name)s: %(message)s"))
     root = logging.getLogger()
     for old in list(root.handlers):
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(level)
+    quiet_url_loggers()
 
 
 @contextmanager

@@ -28,7 +28,7 @@ def api(
     from pydantic import ValidationError
 
     from service.app import create_app
-    from service.server import uvicorn_config
+    from service.server import log_config, uvicorn_config
     from service.settings import ApiSettings
 
     overrides: dict[str, Any] = {k: v for k, v in {"database_url": database_url, "host": host, "port": port}.items() if v is not None}
@@ -36,7 +36,8 @@ def api(
         settings = ApiSettings(**overrides)
     except ValidationError as exc:
         fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}" for e in exc.errors()))
-    server = uvicorn.Server(uvicorn_config(create_app(settings), settings, log_level=log_level))
+    server = uvicorn.Server(uvicorn_config(create_app(settings), settings, log_level=log_level,
+                                           logging_config=log_config()))
     with contextlib.suppress(KeyboardInterrupt):
         server.run()
     if not server.started:  # as uvicorn.run: the port was taken or the app did not start
