@@ -34,7 +34,7 @@ from db.cycles import StoredCycle, store_cycle
 from db.database import Database
 from db.errors import StorageError, StorageUnavailable
 from db.measurements import add_event_once
-from db.models import MeasurementKind, NodeState
+from db.models import MeasurementKind, NodeRow, NodeState
 from db.nodes import get_node, is_decommissioned, record_node_health, record_node_link, upsert_node
 from db.queries import baseline_count, calibration_peaks, recent_verdicts
 from db.records import CycleRecord, DiMapInput, EventInput, NodeInfo
@@ -198,6 +198,7 @@ class NodeWorker:
                     failures += 1
                     self.counters.count_failure(exc)
                     log.warning("cycle failed: %s: %s", type(exc).__name__, exc)
+                    self._record_failed_cycle()
                 except StorageUnavailable as exc:
                     failures += 1
                     self.counters.storage_errors += 1
@@ -274,11 +275,21 @@ class NodeWorker:
         log.warning("%s; reopening with backoff", why)
         self.counters.port_reopens += 1
         self._close()
+        self._record_failed_cycle()
+
+    def _record_failed_cycle(self) -> None:
+        """A cycle that stored nothing: the node did not answer its poll as it should, so it is not
+        online, and the gateway's counts of why (timeouts, transfer errors, reopens) are stored with
+        the node's own counters as last read (they are otherwise stored only with a measurement)."""
         try:
             with self.db.write() as session:
-                record_node_health(session, self.settings.id, online=False)
-        except (StorageError, LookupError):
-            pass  # the node may not be known yet (never answered), or storage is down: nothing to mark
+                node = session.get(NodeRow, self.settings.id)
+                if node is None:
+                    return  # never answered: nothing registered to mark
+                record_node_health(session, self.settings.id, online=False,
+                                   error_counters={**(node.error_counters or {}), **self.counters.as_dict()})
+        except StorageError as exc:
+            log.error("could not record the failed cycle: %s", exc)
 
     def _close(self) -> None:
         with self._connection_lock:
