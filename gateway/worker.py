@@ -180,6 +180,10 @@ class NodeWorker:
                         next_due = started + self.settings.interval_s
                         continue
                     outcome = self.poll_once()
+                except self._abandoned_at_shutdown() as exc:
+                    log.info("stopping: the cycle in flight was abandoned, nothing of it stored (%s: %s)",
+                             type(exc).__name__, exc)
+                    break
                 except PortVanished as exc:
                     failures += 1
                     self._drop_connection(f"port vanished: {exc}")
@@ -227,6 +231,12 @@ class NodeWorker:
                 else:
                     next_due = max(started + self.settings.interval_s, time.monotonic())
             self._close()
+
+    def _abandoned_at_shutdown(self) -> tuple[type[Exception], ...]:
+        """What a cycle may fail with once ``stop`` is set: anything (the daemon closes a port stuck in a
+        transfer to end it, and the read fails however it fails). Before that, nothing: the ``except``
+        clause using it matches no exception, and each failure is handled by its kind below."""
+        return (Exception,) if self.stop.is_set() else ()
 
     def _decommissioned(self) -> bool:
         """True while an admin has decommissioned this node (API): its port is released, nothing is

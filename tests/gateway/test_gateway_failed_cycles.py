@@ -1,4 +1,5 @@
-"""A node whose every cycle fails with its port open is not online, and the gateway's counts of why are stored.
+"""Failed cycles: a node whose every cycle fails with its port open is not online, and the gateway's counts
+of why are stored; a cycle cut short by the shutdown is logged without a traceback.
 
 The real NodeWorker loop against the mock node on a real pty and a real SQLite file; the failure
 is placed in the client (every trace transfer given up on, or the node silent after connecting),
@@ -6,7 +7,9 @@ so that each cycle fails the same way. Every wait is bounded.
 """
 from __future__ import annotations
 
+import logging
 import threading
+import time
 
 import pytest
 
@@ -65,3 +68,37 @@ def test_a_node_failing_every_cycle_on_an_open_port_is_offline_with_its_errors_c
           f"{node.error_counters[counter]}, online = {node.online}")
     assert node.online is False
     assert node.error_counters["gateway_failures"] >= node.error_counters[counter] >= 2
+
+
+class SignalsItsTransfer(NodeClient):
+    """The real client; tells the test when a trace transfer has begun."""
+
+    in_transfer = threading.Event()
+
+    def read_traces(self, *args, **kwargs):
+        self.in_transfer.set()
+        time.sleep(0.2)  # the daemon's shutdown closes the port while the transfer runs
+        return super().read_traces(*args, **kwargs)
+
+
+def test_a_shutdown_that_closes_the_port_mid_transfer_logs_no_traceback(tmp_path, caplog):
+    """What Gateway.shutdown does to a worker stuck in a transfer: stop set, then its port closed."""
+    db = open_database(f"sqlite:///{tmp_path / 'g.db'}")
+    stop = threading.Event()
+    SignalsItsTransfer.in_transfer.clear()
+    with MockNodeServer(default_scenario(1).nodes[:1]) as server, caplog.at_level(logging.INFO, "pipesentry"):
+        settings = NodeSettings(id="node-01", url=server.urls["node-01"], timeout_s=1.0, interval_s=0.2)
+        worker = NodeWorker(settings, db, Heartbeats(), stop, client_factory=SignalsItsTransfer)
+        worker.thread.start()
+        try:
+            assert SignalsItsTransfer.in_transfer.wait(30), "no transfer began"
+            stop.set()
+            worker.conn.client.close()
+            worker.thread.join(15)
+        finally:
+            stop.set()
+            db.dispose()
+    assert not worker.thread.is_alive()
+    # Neither a traceback nor a warning of a port that "vanished": the port was closed on purpose.
+    assert [r.getMessage() for r in caplog.records if r.exc_info or r.levelno >= logging.WARNING] == []
+    assert any("cycle in flight was abandoned" in r.getMessage() for r in caplog.records)
