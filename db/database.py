@@ -1,6 +1,9 @@
 """Opening the database: engine, SQLite set-up, schema check or upgrade, units of work."""
 from __future__ import annotations
 
+import os
+import sqlite3
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -10,10 +13,11 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from db import migrate, sqlite_setup
-from db.errors import SchemaOutOfDate, translate_db_error
+from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, translate_db_error
 
 SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
 SQLITE_POOL_OVERFLOW = 32
+QUICK_CHECK_MAX_ERRORS = 3  # PRAGMA quick_check(N): the first problems found are enough to say it is damaged
 
 
 class Database:
@@ -25,11 +29,17 @@ class Database:
     on a lock upgrade). Both commit when the block ends normally and roll back on an
     exception. Driver errors that mean "storage unavailable" surface as
     :class:`db.errors.StorageUnavailable` subclasses.
+
+    A database known to be damaged (SQLite reported corrupt pages or "not a database", or
+    :meth:`check_integrity` found problems) is never written into again by this object:
+    ``write()`` raises :class:`db.errors.DatabaseDamaged` before it begins.
     """
 
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
         self.is_sqlite = engine.dialect.name == "sqlite"
+        self._damage: DatabaseDamaged | None = None
+        self._damage_lock = threading.Lock()
         self._readers = sessionmaker(engine, expire_on_commit=False)
         writer_engine = (
             engine.execution_options(**{sqlite_setup.BEGIN_MODE_OPTION: sqlite_setup.BEGIN_IMMEDIATE})
@@ -39,22 +49,58 @@ class Database:
         self._writer_engine = writer_engine
         self._writers = sessionmaker(writer_engine, expire_on_commit=False)
 
+    @property
+    def damage(self) -> DatabaseDamaged | None:
+        """Why the database is known to be damaged (None: not known to be)."""
+        return self._damage
+
     @contextmanager
     def session(self) -> Iterator[Session]:
         """One read unit of work (a transaction that commits on success)."""
-        with _storage_errors(), self._readers.begin() as session:
+        with self._noting_damage(), _storage_errors(), self._readers.begin() as session:
             yield session
 
     @contextmanager
     def write(self) -> Iterator[Session]:
-        """One write transaction; all of it is committed, or none of it."""
-        with _storage_errors(), self._writers.begin() as session:
+        """One write transaction; all of it is committed, or none of it. Refused on a damaged database."""
+        damage = self._damage
+        if damage is not None:
+            raise DatabaseDamaged(f"not written: {damage}")
+        with self._noting_damage(), _storage_errors(), self._writers.begin() as session:
             yield session
 
     def schema_revision(self) -> str | None:
         """The Alembic revision the database is at (None if it has no schema)."""
-        with _storage_errors(), self.engine.connect() as connection:
+        with self._noting_damage(), _storage_errors(), self.engine.connect() as connection:
             return migrate.current_revision(connection)
+
+    def check_integrity(self) -> DatabaseDamaged | None:
+        """SQLite: ``PRAGMA quick_check`` over the whole file (reads every page, O(size); no lock that
+        blocks writers in WAL mode). Returns the damage found, and remembers it (no more writes);
+        None when the check passes. PostgreSQL checks its own pages: always None."""
+        if not self.is_sqlite:
+            return None
+        with self._noting_damage(), _storage_errors(), self.engine.connect() as connection:
+            rows = connection.exec_driver_sql(f"PRAGMA quick_check({QUICK_CHECK_MAX_ERRORS})").scalars().all()
+        if [str(r) for r in rows] == ["ok"]:
+            return None
+        problems = " ".join(" ".join(str(r) for r in rows).split())  # one line: quick_check's rows span several
+        found = DatabaseDamaged(f"quick_check found corrupt pages: {problems}")
+        self._note_damage(found)
+        return found
+
+    def _note_damage(self, damage: DatabaseDamaged) -> None:
+        with self._damage_lock:
+            if self._damage is None:
+                self._damage = damage
+
+    @contextmanager
+    def _noting_damage(self) -> Iterator[None]:
+        try:
+            yield
+        except DatabaseDamaged as damage:
+            self._note_damage(damage)
+            raise
 
     def dispose(self) -> None:
         """Close all pooled connections (call at shutdown, and after a fork)."""
@@ -66,6 +112,11 @@ def _storage_errors() -> Iterator[None]:
     try:
         yield
     except sa_exc.DBAPIError as error:
+        mapped = translate_db_error(error)
+        if mapped is None:
+            raise
+        raise mapped from error
+    except sqlite3.Error as error:  # raised by the driver outside SQLAlchemy's wrapping (a raw connection)
         mapped = translate_db_error(error)
         if mapped is None:
             raise
@@ -94,8 +145,13 @@ def open_database(
     *,
     upgrade: bool = True,
     busy_timeout_ms: int = sqlite_setup.DEFAULT_BUSY_TIMEOUT_MS,
+    check_integrity: bool = False,
 ) -> Database:
     """Open ``url`` and make sure its schema is at head.
+
+    ``check_integrity``: an existing SQLite file gets ``PRAGMA quick_check`` first, and a damaged
+    one raises :class:`DatabaseDamaged` (nothing is migrated or written). Any file that is not a
+    usable SQLite database (garbage, truncated, another format) raises it as well.
 
     With ``upgrade=True`` (the gateway) pending Alembic revisions are applied. With
     ``upgrade=False`` (the API server) nothing is changed and :class:`SchemaOutOfDate` is
@@ -104,6 +160,8 @@ def open_database(
     engine = create_db_engine(url, busy_timeout_ms=busy_timeout_ms)
     database = Database(engine)
     try:
+        if database.is_sqlite:
+            _preflight_sqlite_file(str(engine.url.database), check_integrity=check_integrity)
         found = database.schema_revision()
         if found is not None and found not in migrate.known_revisions():
             # Written by a newer release: neither upgrading nor using it is safe.
@@ -119,3 +177,39 @@ def open_database(
         engine.dispose()
         raise
     return database
+
+
+def _preflight_sqlite_file(path: str, *, check_integrity: bool) -> None:
+    """Look at an existing SQLite file read-only before our connections change anything (they switch it
+    to WAL): not SQLite or truncated is :class:`DatabaseDamaged`, another application's tables without
+    our schema stamp :class:`ForeignDatabase`; with ``check_integrity`` also ``PRAGMA quick_check``."""
+    try:
+        if os.path.getsize(path) == 0:
+            return  # a new file: nothing to damage
+    except OSError:
+        return  # not there yet: the gateway creates it
+    try:
+        connection = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    except sqlite3.Error as error:
+        raise _mapped(error) from error
+    try:
+        tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if check_integrity:
+            rows = [str(r[0]) for r in connection.execute(f"PRAGMA quick_check({QUICK_CHECK_MAX_ERRORS})")]
+            if rows != ["ok"]:
+                raise DatabaseDamaged(f"quick_check found corrupt pages: {' '.join(' '.join(rows).split())}")
+    except sqlite3.Error as error:
+        raise _mapped(error) from error
+    finally:
+        connection.close()
+    if tables and "alembic_version" not in tables:
+        shown = ", ".join(sorted(tables)[:5]) + (", ..." if len(tables) > 5 else "")
+        raise ForeignDatabase(
+            f"the file holds {len(tables)} table(s) of something else ({shown}) and no PipeSentry schema: "
+            "not touched; point the database URL at a new file"
+        )
+
+
+def _mapped(error: sqlite3.Error) -> Exception:
+    mapped = translate_db_error(error)
+    return mapped if mapped is not None else error

@@ -11,9 +11,14 @@ from sqlalchemy import exc as sa_exc
 
 # SQLite primary result codes (https://www.sqlite.org/rescode.html); the low byte of an
 # extended code is its primary code.
+_SQLITE_PERM = 3
 _SQLITE_BUSY = 5
+_SQLITE_READONLY = 8
 _SQLITE_IOERR = 10
+_SQLITE_CORRUPT = 11
 _SQLITE_FULL = 13
+_SQLITE_CANTOPEN = 14
+_SQLITE_NOTADB = 26
 # PostgreSQL SQLSTATEs (https://www.postgresql.org/docs/current/errcodes-appendix.html).
 _PG_DISK_FULL = "53100"
 _PG_IO_ERROR = "58030"
@@ -39,6 +44,10 @@ class SchemaOutOfDate(StorageError):
         )
 
 
+class ForeignDatabase(StorageError):
+    """The SQLite file holds another application's tables and no PipeSentry schema: never migrated into."""
+
+
 class StorageUnavailable(StorageError):
     """Writing is impossible right now for a reason outside the code; retry later."""
 
@@ -57,6 +66,18 @@ class StorageBusy(StorageUnavailable):
 
 class StorageConnectionLost(StorageUnavailable):
     """The database server went away (PostgreSQL SQLSTATE class 08)."""
+
+
+class StorageNotWritable(StorageUnavailable):
+    """The file or its directory cannot be opened or written (SQLITE_CANTOPEN, SQLITE_READONLY,
+    SQLITE_PERM): a read-only mount, wrong ownership. Retryable: a remount or chown fixes it."""
+
+
+class DatabaseDamaged(StorageError):
+    """The file is not a usable SQLite database: not SQLite at all, truncated, or with corrupt pages
+    (SQLITE_NOTADB, SQLITE_CORRUPT, or ``PRAGMA quick_check`` reporting problems).
+
+    Not retryable and never written into: restore it from a backup (docs/storage.md)."""
 
 
 class CorruptBlob(StorageError):
@@ -83,8 +104,9 @@ class InvalidCursor(StorageError):
     """A pagination cursor is malformed or was not produced by this module."""
 
 
-def translate_db_error(error: BaseException) -> StorageUnavailable | None:
-    """Map a driver error to a typed :class:`StorageUnavailable`, or None if it is not one."""
+def translate_db_error(error: BaseException) -> StorageUnavailable | DatabaseDamaged | None:
+    """Map a driver error to a typed :class:`StorageUnavailable` (retry later) or :class:`DatabaseDamaged`
+    (the file is broken), or None if it is neither (a bug: it surfaces)."""
     orig = error.orig if isinstance(error, sa_exc.DBAPIError) else error
     invalidated = isinstance(error, sa_exc.DBAPIError) and error.connection_invalidated
     message = str(orig).splitlines()[0] if str(orig) else type(orig).__name__
@@ -97,6 +119,10 @@ def translate_db_error(error: BaseException) -> StorageUnavailable | None:
             return StorageIOError(f"SQLite: {message}")
         if primary == _SQLITE_BUSY:
             return StorageBusy(f"SQLite: {message}")
+        if primary in (_SQLITE_NOTADB, _SQLITE_CORRUPT):
+            return DatabaseDamaged(f"SQLite: {message}")
+        if primary in (_SQLITE_CANTOPEN, _SQLITE_READONLY, _SQLITE_PERM):
+            return StorageNotWritable(f"SQLite: {message}")
         return None
     sqlstate = getattr(orig, "sqlstate", None)
     if sqlstate == _PG_DISK_FULL:

@@ -9,7 +9,7 @@ from datetime import timedelta
 
 from alerts.delivery import AlertDelivery
 from db.database import Database, open_database
-from db.errors import SchemaOutOfDate, StorageError
+from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, StorageError
 from db.retention import prune_traces
 from db.urls import safe_database_url
 from gateway.config import GatewaySettings
@@ -115,15 +115,26 @@ def _log_loop_death(args: threading.ExceptHookArgs) -> None:
 
 
 EXIT_LOOP_DIED = 1  # a supervisor (systemd Restart=always, a container's restart policy) starts it again
+EXIT_DATABASE_UNUSABLE = 2  # the database cannot be used as it is (damaged, not SQLite, not writable, other schema)
 
 
 def run(settings: GatewaySettings) -> int:
     """Run until SIGTERM/SIGINT (exit 0), or until a loop's thread dies (exit 1, after a clean shutdown)."""
+    shown = safe_database_url(settings.database.url)
     try:
-        db = open_database(settings.database.url, upgrade=True)
+        db = open_database(settings.database.url, upgrade=True, check_integrity=True)
     except SchemaOutOfDate as exc:
         log.error("database schema cannot be used: %s", exc)
-        return 2
+        return EXIT_DATABASE_UNUSABLE
+    except DatabaseDamaged as exc:
+        log.error("database %s is damaged, not opened (restore it from a backup, docs/storage.md): %s", shown, exc)
+        return EXIT_DATABASE_UNUSABLE
+    except ForeignDatabase as exc:
+        log.error("database %s is not PipeSentry's: %s", shown, exc)
+        return EXIT_DATABASE_UNUSABLE
+    except StorageError as exc:
+        log.error("database %s cannot be opened: %s: %s", shown, type(exc).__name__, exc)
+        return EXIT_DATABASE_UNUSABLE
     gateway = Gateway(settings, db)
     signalled = threading.Event()
     threading.excepthook = _log_loop_death
@@ -135,13 +146,18 @@ def run(settings: GatewaySettings) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     gateway.start()
-    log.info("gateway started: %d node(s), database %s", len(gateway.workers), safe_database_url(settings.database.url))
+    log.info("gateway started: %d node(s), database %s", len(gateway.workers), shown)
     sd_notify("READY=1\nSTATUS=polling nodes")
     ping_s = watchdog_interval_s(default_s=5.0)
     limits = gateway.stall_limits_s()
     stalled_reported: list[str] = []
     exit_code = 0
     while not signalled.wait(ping_s):
+        if db.damage is not None:
+            log.error("database %s found damaged while running, shutting down without writing into it "
+                      "(restore it from a backup, docs/storage.md): %s", shown, db.damage)
+            exit_code = EXIT_DATABASE_UNUSABLE
+            break
         dead = gateway.dead_loops()
         if dead:
             # Its heartbeat would only go stale after the stall limit (hours, or never); the daemon is broken now.

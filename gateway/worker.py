@@ -32,7 +32,7 @@ from db.baselines import active_baseline, library_baseline_ids
 from db.clock import utc_now
 from db.cycles import StoredCycle, store_cycle
 from db.database import Database
-from db.errors import StorageError, StorageUnavailable
+from db.errors import DatabaseDamaged, StorageError, StorageUnavailable
 from db.measurements import add_event_once
 from db.models import MeasurementKind, NodeRow, NodeState
 from db.nodes import get_node, is_decommissioned, record_node_health, record_node_link, upsert_node
@@ -207,6 +207,10 @@ class NodeWorker:
                     failures += 1
                     self.counters.storage_errors += 1
                     log.error("storage unavailable, measurement dropped, will retry: %s", exc)
+                except DatabaseDamaged as exc:  # the daemon shuts down on it; nothing more is written
+                    failures += 1
+                    self.counters.storage_errors += 1
+                    log.error("database damaged, measurement not stored: %s", exc)
                 except Exception:  # a bug must not kill the node's worker; it is logged with its traceback
                     failures += 1
                     self.counters.internal_errors += 1

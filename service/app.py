@@ -62,7 +62,9 @@ class SecurityHeaders:
 
 def create_app(settings: ApiSettings | None = None) -> FastAPI:
     settings = settings or ApiSettings()
-    gate = DatabaseGate(settings.database_url, busy_timeout_ms=settings.busy_timeout_ms)
+    gate = DatabaseGate(settings.database_url, busy_timeout_ms=settings.busy_timeout_ms,
+                        integrity_check_every_s=settings.integrity_check_every_s,
+                        min_free_bytes=settings.min_free_bytes)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:

@@ -21,6 +21,8 @@ from starlette.routing import Match
 from db.errors import (
     BaselineError,
     CorruptBlob,
+    DatabaseDamaged,
+    ForeignDatabase,
     InvalidCursor,
     NotFound,
     SchemaOutOfDate,
@@ -85,6 +87,8 @@ BASELINE_REFUSED = ProblemKind("baseline-refused", 409, "This measurement cannot
 STORAGE_UNAVAILABLE = ProblemKind("storage-unavailable", 503, "The database is unavailable; retry later")
 SERVER_BUSY = ProblemKind("server-busy", 503, "Too many requests in progress; retry shortly")
 SCHEMA_OUT_OF_DATE = ProblemKind("schema-out-of-date", 503, "The database schema does not match this release")
+DATABASE_DAMAGED = ProblemKind("database-damaged", 503, "The database file is damaged; it must be restored")
+FOREIGN_DATABASE = ProblemKind("foreign-database", 503, "The database file is not PipeSentry's")
 CORRUPT_DATA = ProblemKind("corrupt-data", 500, "Stored data failed its integrity check")
 INTERNAL = ProblemKind("internal-error", 500, "Internal error (logged on the server)")
 
@@ -102,6 +106,8 @@ _STORAGE_KINDS: tuple[tuple[type[StorageError], ProblemKind], ...] = (
     (BaselineError, BASELINE_REFUSED),
     (StateConflict, CONFLICT),
     (SchemaOutOfDate, SCHEMA_OUT_OF_DATE),
+    (DatabaseDamaged, DATABASE_DAMAGED),
+    (ForeignDatabase, FOREIGN_DATABASE),
     (StorageUnavailable, STORAGE_UNAVAILABLE),
     (CorruptBlob, CORRUPT_DATA),
 )
@@ -198,8 +204,10 @@ async def _on_storage_error(request: Request, exc: Exception) -> JSONResponse:
     if kind.status >= 500:
         log.error("%s %s: %s: %s", request.method, request.url.path, type(exc).__name__, exc)
     headers = {"Retry-After": "5"} if kind.status == 503 else None
+    # A 503 names why in one word too (storage_unavailable, database_damaged, ...): what a probe or a script reads.
+    extra = {"reason": kind.slug.replace("-", "_")} if kind.status == 503 else None
     return problem_response(kind, str(exc) if kind.status < 500 or kind.status == 503 else kind.title, request,
-                            headers=headers)
+                            headers=headers, extra=extra)
 
 
 async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -5,6 +5,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from db.urls import DatabaseUrlError, check_database_url
+from service.database import DEFAULT_INTEGRITY_CHECK_EVERY_S, DEFAULT_MIN_FREE_BYTES
 
 KIB = 1024
 
@@ -37,6 +38,14 @@ class ApiSettings(BaseSettings):
     )
     max_requests_in_flight: int = Field(
         512, ge=1, le=100_000, description="requests handled at once at most; the next get a 503 server-busy problem"
+    )
+    integrity_check_every_s: float = Field(
+        DEFAULT_INTEGRITY_CHECK_EVERY_S, gt=0, le=7 * 86_400, allow_inf_nan=False,
+        description="SQLite: PRAGMA quick_check when opened and again this often (a damaged file: /readyz 503)",
+    )
+    min_free_bytes: int = Field(
+        DEFAULT_MIN_FREE_BYTES, ge=0, description="SQLite: less free space than this on the database's filesystem "
+        "is /readyz 503 storage_unavailable (the gateway cannot store its next measurement)",
     )
     key_cache_ttl_s: float = Field(
         10.0, ge=0, le=300, description="a verified API key is trusted this long without a lookup; a key revoked "
