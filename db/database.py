@@ -1,11 +1,14 @@
 """Opening the database: engine, SQLite set-up, schema check or upgrade, units of work."""
 from __future__ import annotations
 
+import logging
 import os
 import sqlite3
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from datetime import datetime
 
 from sqlalchemy import create_engine, make_url
 from sqlalchemy import exc as sa_exc
@@ -13,11 +16,33 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from db import migrate, sqlite_setup
-from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, translate_db_error
+from db.clock import utc_now
+from db.errors import (
+    DatabaseDamaged,
+    ForeignDatabase,
+    SchemaOutOfDate,
+    StorageBusy,
+    StorageError,
+    StorageFull,
+    StorageUnavailable,
+    translate_db_error,
+)
+
+log = logging.getLogger("pipesentry.storage")
 
 SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
 SQLITE_POOL_OVERFLOW = 32
 QUICK_CHECK_MAX_ERRORS = 3  # PRAGMA quick_check(N): the first problems found are enough to say it is damaged
+
+
+@dataclass(frozen=True)
+class StorageOutage:
+    """Writes have been failing since ``since`` (disk full, I/O error, read-only, server gone)."""
+
+    since: datetime
+    reason: str  # the first failure's message
+    failed_writes: int
+    ended_at: datetime | None = None  # the first write that fitted again
 
 
 class Database:
@@ -40,6 +65,8 @@ class Database:
         self.is_sqlite = engine.dialect.name == "sqlite"
         self._damage: DatabaseDamaged | None = None
         self._damage_lock = threading.Lock()
+        self._outage: StorageOutage | None = None
+        self._ended_outages: list[StorageOutage] = []
         self._readers = sessionmaker(engine, expire_on_commit=False)
         writer_engine = (
             engine.execution_options(**{sqlite_setup.BEGIN_MODE_OPTION: sqlite_setup.BEGIN_IMMEDIATE})
@@ -66,8 +93,62 @@ class Database:
         damage = self._damage
         if damage is not None:
             raise DatabaseDamaged(f"not written: {damage}")
-        with self._noting_damage(), _storage_errors(), self._writers.begin() as session:
-            yield session
+        try:
+            with self._noting_damage(), _storage_errors(), self._writers.begin() as session:
+                yield session
+        except StorageUnavailable as unavailable:
+            self._note_failed_write(unavailable)
+            raise
+        if self._outage is not None:
+            self._note_write_fitted()
+
+    @property
+    def storage_outage(self) -> StorageOutage | None:
+        """The outage going on now: writes failing since when, why (None: the last write worked)."""
+        return self._outage
+
+    def take_ended_outages(self) -> list[StorageOutage]:
+        """Outages that ended since the last call (for the gateway's ``storage_unavailable`` event)."""
+        with self._damage_lock:
+            ended, self._ended_outages = self._ended_outages, []
+        return ended
+
+    def _note_failed_write(self, error: StorageUnavailable) -> None:
+        if isinstance(error, StorageBusy):
+            return  # another writer held the lock: not storage being unavailable
+        with self._damage_lock:
+            outage = self._outage
+            if outage is None:
+                self._outage = StorageOutage(since=utc_now(), reason=f"{type(error).__name__}: {error}",
+                                             failed_writes=1)
+                log.error("storage unavailable: writes fail: %s", error)
+            else:
+                self._outage = replace(outage, failed_writes=outage.failed_writes + 1)
+        if isinstance(error, StorageFull) and self.is_sqlite:
+            self.release_wal()
+
+    def _note_write_fitted(self) -> None:
+        with self._damage_lock:
+            outage, self._outage = self._outage, None
+            if outage is None:
+                return
+            ended = replace(outage, ended_at=utc_now())
+            self._ended_outages.append(ended)
+        log.warning("storage available again: writes resumed after %d failed (since %s)", ended.failed_writes,
+                    ended.since.isoformat(timespec="seconds"))
+
+    def release_wal(self) -> bool:
+        """SQLite: ``PRAGMA wal_checkpoint(TRUNCATE)``: the WAL's pages into the database file and the WAL
+        file cut to zero, so the space it held is the file system's again. Returns True when it completed
+        (it cannot while a reader holds an old snapshot, or while the database file cannot grow)."""
+        try:
+            with _storage_errors(), self.engine.connect() as connection:
+                busy, _log_pages, _done = connection.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)").one()
+                connection.commit()
+        except StorageError as error:
+            log.debug("WAL checkpoint after a full disk did not complete: %s", error)
+            return False
+        return not busy
 
     def schema_revision(self) -> str | None:
         """The Alembic revision the database is at (None if it has no schema)."""

@@ -20,9 +20,12 @@ PAGE_SIZE_BYTES = 16384
 # One fsync per measurement is nothing at our write rate (see docs/storage.md).
 SYNCHRONOUS = "FULL"
 DEFAULT_BUSY_TIMEOUT_MS = 5000
-# After a checkpoint the WAL file is truncated back to this size, so a burst of writes
-# does not keep its disk space forever.
-JOURNAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
+# The WAL is checkpointed into the database file every this many pages (2 MiB at 16 KiB pages, about
+# 15 measurements) instead of SQLite's 1000 (16 MiB): the space it holds on a full disk stays small.
+WAL_AUTOCHECKPOINT_PAGES = 128
+# After a checkpoint the WAL file is truncated back to this size, so a burst of writes does not
+# keep its disk space (a full disk: the space a write needs is not held by an old WAL).
+JOURNAL_SIZE_LIMIT_BYTES = 4 * 1024 * 1024
 
 BEGIN_MODE_OPTION = "pipesentry_sqlite_begin"  # execution option read by the begin hook
 BEGIN_DEFERRED = "DEFERRED"
@@ -59,6 +62,7 @@ def configure_connection(dbapi_connection: sqlite3.Connection, busy_timeout_ms: 
         cursor.execute(f"PRAGMA synchronous = {SYNCHRONOUS}")
         cursor.execute("PRAGMA foreign_keys = ON")
         cursor.execute(f"PRAGMA journal_size_limit = {JOURNAL_SIZE_LIMIT_BYTES}")
+        cursor.execute(f"PRAGMA wal_autocheckpoint = {WAL_AUTOCHECKPOINT_PAGES}")
     finally:
         cursor.close()
 
