@@ -34,6 +34,7 @@ from alerts.payloads import (
     SensorFaultPayload,
     SinkDisabledPayload,
     StateChangePayload,
+    StorageUnavailablePayload,
     payload_json,
 )
 from db.clock import utc_now
@@ -58,6 +59,7 @@ class EventKind(StrEnum):
     SENSOR_FAULT = "sensor_fault"  # a receiver (transducer channel) of a node became faulty
     SENSOR_FAULT_CLEARED = "sensor_fault_cleared"  # that receiver is healthy again
     NODE_MISCONFIGURED = "node_misconfigured"  # the port answers as another node, or it did not apply the settings
+    STORAGE_UNAVAILABLE = "storage_unavailable"  # the gateway's writes failed for a while (disk full, I/O errors)
 
 
 # The states whose entry raises damage, and how loudly.
@@ -380,6 +382,28 @@ def sink_disabled_event(
     )
     event = _event(settings, payload, Severity.WARNING)
     return replace(event, sinks=tuple(n for n in event.sinks if n != sink_name))
+
+
+def storage_unavailable_event(
+    settings: AlertingSettings,
+    *,
+    since: datetime,
+    until: datetime,
+    failed_writes: int,
+    reason: str,
+) -> EventInput:
+    """``storage_unavailable`` (warning): the gateway's writes failed from ``since`` until ``until``; one id
+    per outage. Written by the first writes that fit again (during the outage nothing can be)."""
+    eid = event_id(EventKind.STORAGE_UNAVAILABLE, since.isoformat())
+    lasted_s = max(0.0, (until - since).total_seconds())
+    payload = StorageUnavailablePayload(
+        **_common(settings, eid, EventKind.STORAGE_UNAVAILABLE, None, Severity.WARNING, Severity.WARNING, until),
+        summary=f"storage unavailable for {lasted_s:.0f} s from {since.isoformat(timespec='seconds')}: "
+        f"{failed_writes} write(s) failed ({reason}); measurements acquired meanwhile were not stored",
+        state=None, previous_state=None, online=None,
+        since=since, until=until, failed_writes=failed_writes, reason=reason,
+    )
+    return _event(settings, payload, Severity.WARNING)
 
 
 def sensor_fault_event(

@@ -17,7 +17,7 @@ Topics (``topic_prefix`` default ``pipesentry/nodes``, ``gateway_topic`` default
 * ``{gateway_topic}/status`` — retained: ``{"online": true, ...}`` while this process is
   connected; the broker publishes the last will ``{"online": false, "reason": "connection lost"}``
   when it goes without a word (power cut, kill -9, network), and a clean stop says
-  ``"reason": "stopped"``. ``{gateway_topic}/events``: events about no node (sink_disabled).
+  ``"reason": "stopped"``. ``{gateway_topic}/events``: events about no node (sink_disabled, storage_unavailable).
 
 The state documents are kept current by ``maintain()`` (at most every ``state_interval_s``);
 after a (re)connection every node's document is published again, so a broker that lost its

@@ -233,6 +233,17 @@ class SinkDisabledPayload(EventPayload):
     status_code: int
 
 
+class StorageUnavailablePayload(EventPayload):
+    """The gateway could not write to its database for a while (disk full, I/O errors, read-only); about
+    no node. Told when writes work again: what was acquired meanwhile was not stored."""
+
+    kind: Literal["storage_unavailable"]
+    since: Instant = Field(description="the first write that failed")
+    until: Instant = Field(description="the first write that fitted again")
+    failed_writes: int = Field(description="transactions refused meanwhile (measurements, health updates)")
+    reason: str = Field(description="the first failure, e.g. StorageFull: SQLite: database or disk is full")
+
+
 class ReceiverPayload(EventPayload):
     """About one receiver of a node."""
 
@@ -266,6 +277,7 @@ KIND_PAYLOADS: tuple[type[EventPayload], ...] = (
     NodeRecommissionedPayload,
     NodeMisconfiguredPayload,
     SinkDisabledPayload,
+    StorageUnavailablePayload,
     SensorFaultPayload,
     SensorFaultClearedPayload,
 )
@@ -278,6 +290,7 @@ AlertPayload = Annotated[
     | NodeRecommissionedPayload
     | NodeMisconfiguredPayload
     | SinkDisabledPayload
+    | StorageUnavailablePayload
     | SensorFaultPayload
     | SensorFaultClearedPayload,
     Field(discriminator="kind"),

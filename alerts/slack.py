@@ -21,6 +21,7 @@ ICONS = {
     "node_online": ":white_check_mark:",
     "baseline_changed": ":information_source:",
     "sink_disabled": ":warning:",
+    "storage_unavailable": ":warning:",
     "sensor_fault": ":warning:",
     "sensor_fault_cleared": ":white_check_mark:",
     "node_decommissioned": ":no_entry_sign:",

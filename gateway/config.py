@@ -43,6 +43,10 @@ class DatabaseSettings(_Section):
         "sqlite:///pipesentry.db",
         description="sqlite:///relative.db, sqlite:////absolute.db or postgresql+psycopg://user@host/db",
     )
+    integrity_check_every_s: float = Field(
+        DAY_S, gt=0, le=MAX_INTERVAL_S, description="SQLite: PRAGMA quick_check at every start and this often; "
+        "a damaged database stops the gateway (exit 2) before anything more is written into it",
+    )
 
     @field_validator("url")
     @classmethod

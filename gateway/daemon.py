@@ -8,8 +8,10 @@ import time
 from datetime import timedelta
 
 from alerts.delivery import AlertDelivery
-from db.database import Database, open_database
+from alerts.events import storage_unavailable_event
+from db.database import Database, StorageOutage, open_database
 from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, StorageError
+from db.measurements import add_event_once
 from db.retention import prune_traces
 from db.urls import safe_database_url
 from gateway.config import GatewaySettings
@@ -20,6 +22,8 @@ from gateway.worker import NodeWorker
 log = logging.getLogger("pipesentry.gateway")
 
 RETENTION = "retention"
+STORAGE = "storage"
+STORAGE_TICK_S = 5.0  # how often the storage loop looks for an ended outage to tell
 
 
 class Gateway:
@@ -38,6 +42,8 @@ class Gateway:
             for node in settings.nodes
         ]
         self._retention = threading.Thread(target=self._retention_loop, name=RETENTION, daemon=True)
+        self._storage = threading.Thread(target=self._storage_loop, name=STORAGE, daemon=True)
+        self._untold_outages: list[StorageOutage] = []
         # Alert delivery: one thread per sink plus the outage watcher; none of them waits on a node or on each other.
         self.alerting = AlertDelivery(settings.alerting, db, stop=self.stop, heartbeats=self.heartbeats)
         self.metrics_registry = gateway_registry(self.workers, self.alerting.sink_workers, db)
@@ -53,11 +59,12 @@ class Gateway:
             cycle_s = node.worst_cycle_s() + self.settings.reopen_backoff_max_s
             limits[w.name] = fixed or 3 * cycle_s
         limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
+        limits[STORAGE] = fixed or 3 * STORAGE_TICK_S + 3600  # a quick_check of a large file takes minutes
         limits.update({name: fixed or limit for name, limit in self.alerting.stall_limits_s().items()})
         return limits
 
     def threads(self) -> list[threading.Thread]:
-        return [w.thread for w in self.workers] + [self._retention] + self.alerting.threads
+        return [w.thread for w in self.workers] + [self._retention, self._storage] + self.alerting.threads
 
     def dead_loops(self) -> list[str]:
         """Loops whose thread ended while the daemon runs (a bug escaped its loop): nothing polls there any more."""
@@ -67,6 +74,7 @@ class Gateway:
         for w in self.workers:
             w.thread.start()
         self._retention.start()
+        self._storage.start()
         self.alerting.start()
         self.metrics = serve_metrics(self.settings.metrics, self.metrics_registry)
 
@@ -85,6 +93,36 @@ class Gateway:
             self.heartbeats.beat(RETENTION)
             self.stop.wait(r.prune_every_s)
 
+    def _storage_loop(self) -> None:
+        """The database's health: ``quick_check`` every ``integrity_check_every_s`` (measured on the monotonic
+        clock), and a ``storage_unavailable`` event for each outage once writes fit again."""
+        every_s = self.settings.database.integrity_check_every_s
+        checked_at = time.monotonic()  # open_database checked it at the start
+        self.heartbeats.beat(STORAGE)
+        while not self.stop.wait(STORAGE_TICK_S):
+            try:
+                self._tell_ended_outages()
+                if time.monotonic() - checked_at >= every_s and self.db.damage is None:
+                    checked_at = time.monotonic()
+                    damage = self.db.check_integrity()
+                    if damage is not None:
+                        log.error("integrity check: %s", damage)
+            except StorageError as exc:
+                log.error("storage check failed, will retry: %s", exc)
+            self.heartbeats.beat(STORAGE)
+
+    def _tell_ended_outages(self) -> None:
+        """Each ended outage as an event; one that cannot be written yet is kept to be told next tick."""
+        self._untold_outages += self.db.take_ended_outages()
+        while self._untold_outages:
+            outage = self._untold_outages[0]
+            assert outage.ended_at is not None  # an ended outage has its end
+            event = storage_unavailable_event(self.settings.alerting, since=outage.since, until=outage.ended_at,
+                                              failed_writes=outage.failed_writes, reason=outage.reason)
+            with self.db.write() as session:
+                add_event_once(session, event, node_id=None)
+            self._untold_outages.pop(0)
+
     def shutdown(self, timeout_s: float) -> None:
         """Stop the loops; a worker stuck in a transfer has its port closed to break out."""
         self.stop.set()
@@ -101,6 +139,7 @@ class Gateway:
         for w in self.workers:
             w.thread.join(max(0.0, deadline - time.monotonic()))
         self._retention.join(max(0.0, deadline - time.monotonic()))
+        self._storage.join(max(0.0, deadline - time.monotonic()))
         self.alerting.join(max(0.0, deadline - time.monotonic()))
         if self.metrics is not None:
             self.metrics.close()

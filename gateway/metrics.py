@@ -48,8 +48,28 @@ class GatewayCollector(Collector):
         self.database = database
 
     def collect(self) -> Iterator[Metric]:
+        yield from self._storage_metrics()
         yield from self._node_metrics()
         yield from self._sink_metrics()
+
+    def _storage_metrics(self) -> Iterator[Metric]:
+        available = GaugeMetricFamily("pipesentry_gateway_storage_available",
+                                      "1 while the gateway's writes work; 0 since one failed (disk full, I/O error, "
+                                      "read-only) until one fits again")
+        since = GaugeMetricFamily("pipesentry_gateway_storage_unavailable_since_timestamp_seconds",
+                                  "when the writes started failing (absent while they work)")
+        failed = GaugeMetricFamily("pipesentry_gateway_storage_failed_writes",
+                                   "writes refused in the outage going on (absent while they work)")
+        damaged = GaugeMetricFamily("pipesentry_gateway_database_damaged",
+                                    "1 once the database was found damaged (nothing more is written; the gateway stops)")
+        outage = self.database.storage_outage
+        available.add_metric([], 0.0 if outage is not None else 1.0)
+        damaged.add_metric([], 0.0 if self.database.damage is None else 1.0)
+        yield from (available, damaged)
+        if outage is not None:
+            since.add_metric([], outage.since.timestamp())
+            failed.add_metric([], outage.failed_writes)
+            yield from (since, failed)
 
     def _node_metrics(self) -> Iterator[Metric]:
         node = ["node"]

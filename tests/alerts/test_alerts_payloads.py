@@ -24,6 +24,7 @@ from alerts.events import (
     sensor_fault_event,
     sink_disabled_event,
     state_change_event,
+    storage_unavailable_event,
 )
 from alerts.payloads import ALERT_PAYLOAD, KIND_PAYLOADS, PAYLOAD_SCHEMA, payload_json, payload_json_schema
 from db.models import NodeState
@@ -65,6 +66,8 @@ def every_kind_of_event():
                                  problems=["node_id: the node on /dev/ttyUSB1 reports 'n-2', configured 'n-1'"]),
         sink_disabled_event(SETTINGS, sink_name="old-hook", endpoint_fingerprint="ab12", status_code=410,
                             occurred_at=T0),
+        storage_unavailable_event(SETTINGS, since=T0, until=T0 + timedelta(minutes=20), failed_writes=4,
+                                  reason="StorageFull: SQLite: database or disk is full"),
         raised,
         sensor_fault_cleared_event(SETTINGS, node_id="n-1", raised_event_id=raised.id,
                                    raised_receiver=raised.payload["receiver"], raised_measurement_id=11,
