@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from datetime import datetime
 
 from sqlalchemy.orm import Session
 
@@ -21,8 +22,12 @@ class StoredCycle:
     events: tuple[EventInput, ...]  # the events added to the outbox (a fact already there is not added again)
 
 
-def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for: EventsFor | None = None) -> StoredCycle:
-    """Store ``record`` and the events it causes; call inside ``Database.write()``.
+def store_cycle(
+    session: Session, node_id: str, record: CycleRecord, events_for: EventsFor | None = None,
+    *, now: datetime | None = None,
+) -> StoredCycle:
+    """Store ``record`` and the events it causes; call inside ``Database.write()``. ``now``: the storing
+    clock's time (the rows' created_at, the node's last_seen_at; default the wall clock).
 
     The measurement, its maps, verdict and state change, the baseline it may become, its
     outbox events and the node's health are committed together or (on any error) not at all.
@@ -48,11 +53,12 @@ def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for:
         di_maps=record.di_maps,
         detection=record.detection,
         state_change=record.state_change,
+        now=now,
     )
     if record.activate_baseline is not None:
         set_active_baseline(session, node_id, row.id, created_by="gateway", reason=record.activate_baseline)
     events = tuple(
         event for event in (events_for(row.id) if events_for else ()) if add_event_once(session, event, node_id=node_id)
     )
-    record_node_health(session, node_id, online=True, error_counters=record.error_counters)
+    record_node_health(session, node_id, online=True, error_counters=record.error_counters, seen_at=now)
     return StoredCycle(row.id, events)

@@ -147,6 +147,7 @@ class MeasurementRow(Base):
     __tablename__ = "measurements"
     __table_args__ = (
         Index("ix_measurements_node_time", "node_id", "acquired_at", "id"),
+        Index("ix_measurements_node_id_order", "node_id", "id"),  # lists and "latest" go by insertion
         # A blob is either present (not pruned) or gone with the time it was pruned.
         CheckConstraint(
             "(traces_blob IS NULL) = (traces_pruned_at IS NOT NULL)", name="traces_xor_pruned"
@@ -247,7 +248,10 @@ class DetectionRow(Base):
     """
 
     __tablename__ = "detections"
-    __table_args__ = (Index("ix_detections_node_time", "node_id", "created_at", "id"),)
+    __table_args__ = (
+        Index("ix_detections_node_time", "node_id", "created_at", "id"),
+        Index("ix_detections_node_id_order", "node_id", "id"),  # lists and "latest" go by insertion
+    )
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), unique=True)
@@ -271,7 +275,10 @@ class StateChangeRow(Base):
     """A transition of a node's state, with the measurement that caused it (if any)."""
 
     __tablename__ = "state_changes"
-    __table_args__ = (Index("ix_state_changes_node_time", "node_id", "at", "id"),)
+    __table_args__ = (
+        Index("ix_state_changes_node_time", "node_id", "at", "id"),
+        Index("ix_state_changes_node_id_order", "node_id", "id"),  # the history goes by insertion
+    )
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     node_id: Mapped[str] = mapped_column(ForeignKey("nodes.node_id"))

@@ -1,4 +1,4 @@
-"""Keyset (cursor) pagination over rows ordered by (timestamp, id).
+"""Keyset (cursor) pagination over rows in insertion order (id).
 
 A cursor names the last row of a page; the next page starts strictly after it, so rows
 inserted meanwhile never shift or repeat pages (unlike OFFSET), and every page is one
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Generic, TypeVar
 
-from sqlalchemy import Select, and_, or_
+from sqlalchemy import Select
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from db.errors import InvalidCursor
@@ -74,20 +74,18 @@ def keyset_page(
     cursor: str | None,
     newest_first: bool,
 ) -> Page[Any]:
-    """Run ``statement`` (a select of one entity) one page at a time."""
+    """Run ``statement`` (a select of one entity) one page at a time, in insertion order (``id_column``).
+
+    Not by ``time_column``: a timestamp is what a clock said, and a clock that stepped forward and
+    back would put a future-dated row first for as long as the step was (issue 15.1). The cursor
+    still carries the row's time (its format is unchanged); only its id places the next page.
+    """
     if not 1 <= limit <= MAX_PAGE_SIZE:
         raise ValueError(f"page size must be 1..{MAX_PAGE_SIZE}, got {limit}")
     if cursor is not None:
-        at, row_id = decode_cursor(cursor)
-        if newest_first:
-            after = or_(time_column < at, and_(time_column == at, id_column < row_id))
-        else:
-            after = or_(time_column > at, and_(time_column == at, id_column > row_id))
-        statement = statement.where(after)
-    if newest_first:
-        statement = statement.order_by(time_column.desc(), id_column.desc())
-    else:
-        statement = statement.order_by(time_column.asc(), id_column.asc())
+        _at, row_id = decode_cursor(cursor)
+        statement = statement.where(id_column < row_id if newest_first else id_column > row_id)
+    statement = statement.order_by(id_column.desc() if newest_first else id_column.asc())
     rows = list(session.scalars(statement.limit(limit + 1)))
     if len(rows) <= limit:
         return Page(items=rows, next_cursor=None)

@@ -67,25 +67,19 @@ def state_history(
 
 
 def latest_detection(session: Session, node_id: str) -> DetectionRow | None:
-    """The most recent verdict for a node (None before its first monitor measurement)."""
-    statement = (
-        select(DetectionRow)
-        .where(DetectionRow.node_id == node_id)
-        .order_by(DetectionRow.created_at.desc(), DetectionRow.id.desc())
-        .limit(1)
-    )
+    """The most recent verdict for a node, the last stored (None before its first monitor measurement).
+
+    "Most recent" is insertion order, never a timestamp: a clock that stepped forward would make a
+    future-dated verdict the latest for as long as the step was."""
+    statement = select(DetectionRow).where(DetectionRow.node_id == node_id).order_by(DetectionRow.id.desc()).limit(1)
     return session.scalars(statement).first()
 
 
 def latest_detections(session: Session, node_ids: Collection[str]) -> dict[str, DetectionRow]:
-    """The most recent verdict of each of ``node_ids`` (nodes without one are absent), in one query."""
+    """The last stored verdict of each of ``node_ids`` (nodes without one are absent), in one query."""
     if not node_ids:
         return {}
-    rank = (
-        func.row_number()
-        .over(partition_by=DetectionRow.node_id, order_by=(DetectionRow.created_at.desc(), DetectionRow.id.desc()))
-        .label("rank")
-    )
+    rank = func.row_number().over(partition_by=DetectionRow.node_id, order_by=DetectionRow.id.desc()).label("rank")
     ranked = select(DetectionRow.id, rank).where(DetectionRow.node_id.in_(list(node_ids))).subquery()
     rows = session.scalars(
         select(DetectionRow).join(ranked, ranked.c.id == DetectionRow.id).where(ranked.c.rank == 1)
@@ -113,13 +107,17 @@ def baseline_count(session: Session, node_id: str) -> int:
     return int(session.scalar(statement) or 0)
 
 
-def calibration_peaks(session: Session, node_id: str, *, since: datetime, limit: int) -> list[float]:
-    """The first ``limit`` peak DIs stored since ``since`` without a threshold (calibration readings), oldest first."""
+def calibration_peaks(session: Session, node_id: str, *, after_measurement_id: int, limit: int) -> list[float]:
+    """The first ``limit`` peak DIs without a threshold (calibration readings) of measurements stored after
+    ``after_measurement_id`` (the active baseline's), oldest first.
+
+    After, in insertion order: not "since the baseline's created_at", which a clock stepped back
+    would never reach again (calibration frozen for as long as the step)."""
     rows = session.scalars(
         select(DetectionRow.peak_di)
         .where(
             DetectionRow.node_id == node_id,
-            DetectionRow.created_at >= since,
+            DetectionRow.measurement_id > after_measurement_id,
             DetectionRow.threshold.is_(None),
             DetectionRow.peak_di.is_not(None),
         )

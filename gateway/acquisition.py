@@ -210,8 +210,14 @@ def _record_settings(conn: Connection, reply: AcquireReply, transfer: TraceTrans
     return applied_settings(conn.config, fs_hz=transfer.fs_hz, t0_s=transfer.t0_s)
 
 
-def acquire(conn: Connection, settings: NodeSettings, *, commissioning: bool, read_node_map: bool) -> Acquisition:
+def acquire(
+    conn: Connection, settings: NodeSettings, *, commissioning: bool, read_node_map: bool,
+    now: Callable[[], datetime] = utc_now,
+) -> Acquisition:
     """STATUS, ACQUIRE and READ_TRACES; with ``read_node_map`` also the node's own map of it.
+
+    ``acquired_at`` is ``now()`` as the ACQUIRE is sent: when the node records (it acquires on
+    receipt), whatever the reply, a retry or the transfer afterwards take.
 
     A new boot id in STATUS (or settings left stale by the last record) means INFO and CONFIGURE
     again first. A commissioning record fills the node's baseline slot; so does the first record
@@ -233,8 +239,8 @@ def acquire(conn: Connection, settings: NodeSettings, *, commissioning: bool, re
     node_maps = read_node_map and info.has(CAP_ON_BOARD_DI) and has_slot
     fill_slot = has_slot and (commissioning or (node_maps and (status.baseline_id == 0
                                                                or conn.slot_measurement_id is None)))
+    acquired_at = now()
     reply = client.acquire(baseline=fill_slot)
-    acquired_at = utc_now()
     channels = [i for i in range(32) if reply.channel_mask >> i & 1]  # the record's, whatever was configured
     transfer = client.read_traces(reply.measurement_id, channels=channels)
     if transfer.boot_id != reply.boot_id:

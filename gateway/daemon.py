@@ -14,6 +14,7 @@ from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, Storage
 from db.measurements import add_event_once
 from db.retention import prune_traces
 from db.urls import safe_database_url
+from gateway.clock import STEP_TOLERANCE_S, Clock, ElapsedWall, SystemClock
 from gateway.config import GatewaySettings
 from gateway.metrics import MetricsServer, gateway_registry, serve_metrics
 from gateway.watchdog import Heartbeats, sd_notify, watchdog_interval_s
@@ -29,15 +30,17 @@ STORAGE_TICK_S = 5.0  # how often the storage loop looks for an ended outage to 
 class Gateway:
     """Owns the database, the node workers and the retention loop."""
 
-    def __init__(self, settings: GatewaySettings, db: Database) -> None:
+    def __init__(self, settings: GatewaySettings, db: Database, *, clock: Clock | None = None) -> None:
         self.settings = settings
         self.db = db
+        self.clock: Clock = clock or SystemClock()
+        self.retention_clock = ElapsedWall(self.clock)  # retention's now: never ahead of the elapsed time
         self.stop = threading.Event()
         self.heartbeats = Heartbeats()
         self.workers = [
             NodeWorker(
                 node, db, self.heartbeats, self.stop, backoff_max_s=settings.reopen_backoff_max_s,
-                alerting=settings.alerting,
+                alerting=settings.alerting, clock=self.clock,
             )
             for node in settings.nodes
         ]
@@ -81,9 +84,16 @@ class Gateway:
     def _retention_loop(self) -> None:
         r = self.settings.retention
         self.heartbeats.beat(RETENTION)
+        stepped = False
         while not self.stop.is_set():
             try:
-                pruned = prune_traces(self.db.write, timedelta(days=r.raw_traces_days), r.prune_batch)
+                step_s = self.retention_clock.step_s()
+                if abs(step_s) > STEP_TOLERANCE_S and not stepped:
+                    log.warning("wall clock stepped %+.0f s against the elapsed time since the start: retention "
+                                "goes by the elapsed time (a step forward prunes nothing early)", step_s)
+                stepped = abs(step_s) > STEP_TOLERANCE_S
+                pruned = prune_traces(self.db.write, timedelta(days=r.raw_traces_days), r.prune_batch,
+                                      now=self.retention_clock.now())
                 if pruned:
                     log.info("retention: pruned the raw traces of %d measurements", pruned)
             except StorageError as exc:
@@ -97,13 +107,14 @@ class Gateway:
         """The database's health: ``quick_check`` every ``integrity_check_every_s`` (measured on the monotonic
         clock), and a ``storage_unavailable`` event for each outage once writes fit again."""
         every_s = self.settings.database.integrity_check_every_s
-        checked_at = time.monotonic()  # open_database checked it at the start
+        monotonic = self.clock.monotonic
+        checked_at = monotonic()  # open_database checked it at the start
         self.heartbeats.beat(STORAGE)
         while not self.stop.wait(STORAGE_TICK_S):
             try:
                 self._tell_ended_outages()
-                if time.monotonic() - checked_at >= every_s and self.db.damage is None:
-                    checked_at = time.monotonic()
+                if monotonic() - checked_at >= every_s and self.db.damage is None:
+                    checked_at = monotonic()
                     damage = self.db.check_integrity()
                     if damage is not None:
                         log.error("integrity check: %s", damage)

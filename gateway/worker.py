@@ -12,7 +12,6 @@ import dataclasses
 import logging
 import statistics
 import threading
-import time
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -29,7 +28,6 @@ from alerts.events import (
 )
 from alerts.sensor_faults import sensor_fault_history
 from db.baselines import active_baseline, library_baseline_ids
-from db.clock import utc_now
 from db.cycles import StoredCycle, store_cycle
 from db.database import Database
 from db.errors import DatabaseDamaged, StorageError, StorageUnavailable
@@ -48,6 +46,7 @@ from gateway.acquisition import (
     open_connection,
 )
 from gateway.assessment import BaselineLibrary, abstained, assess_settings, gateway_map
+from gateway.clock import Clock, SystemClock
 from gateway.config import NodeSettings
 from gateway.decision import (
     MonitoringInputs,
@@ -129,8 +128,10 @@ class NodeWorker:
         backoff_max_s: float = 60.0,
         alerting: AlertingSettings | None = None,
         client_factory: ClientFactory = NodeClient,
+        clock: Clock | None = None,
     ) -> None:
         self.settings = settings
+        self.clock: Clock = clock or SystemClock()
         self.db = db
         self.heartbeats = heartbeats
         self.stop = stop
@@ -168,12 +169,13 @@ class NodeWorker:
         with node_context(self.settings.id):
             self.heartbeats.beat(self.name)
             failures = 0
-            next_due = time.monotonic()
+            monotonic = self.clock.monotonic
+            next_due = monotonic()
             while not self.stop.is_set():
-                wait_s = max(0.0, next_due - time.monotonic())
+                wait_s = max(0.0, next_due - monotonic())
                 if wait_s and self.stop.wait(wait_s):
                     break
-                started = time.monotonic()
+                started = monotonic()
                 try:
                     if self._decommissioned():
                         self.heartbeats.beat(self.name)  # idle by decision, not hung
@@ -231,9 +233,9 @@ class NodeWorker:
                     )
                 self.heartbeats.beat(self.name)
                 if failures:  # USB re-enumeration, a rebooting node: try again later and later
-                    next_due = time.monotonic() + self.reopen_backoff.delay_s(failures)
+                    next_due = monotonic() + self.reopen_backoff.delay_s(failures)
                 else:
-                    next_due = max(started + self.settings.interval_s, time.monotonic())
+                    next_due = max(started + self.settings.interval_s, monotonic())
             self._close()
 
     def _abandoned_at_shutdown(self) -> tuple[type[Exception], ...]:
@@ -389,7 +391,7 @@ class NodeWorker:
                 assessment = assess(acquisition.measurement, list(inputs.library), imaging)
             _log_assessment(assessment)
             verdict = decide_monitoring(
-                self.settings, history, inputs, assessment, temperature_c=acquisition.temperature_c, now=utc_now()
+                self.settings, history, inputs, assessment, temperature_c=acquisition.temperature_c, now=self.clock.wall()
             )
             own_map = gateway_map(assessment, list(inputs.library_ids))
             maps = [m for m in (own_map, acquisition.node_map) if m is not None]
@@ -407,6 +409,7 @@ class NodeWorker:
                 session, self.settings.id, record,
                 lambda measurement_id: verdict.events(self.alerting, node_id=self.settings.id,
                                                       measurement_id=measurement_id),
+                now=self.clock.wall(),
             )
         if acquisition.filled_slot and self.conn is not None:  # the node's own maps are made against this record
             self.conn = dataclasses.replace(self.conn, slot_measurement_id=stored.measurement_id)
@@ -414,7 +417,8 @@ class NodeWorker:
 
     def _acquire(self, conn: Connection, *, commissioning: bool, read_node_map: bool) -> Acquisition:
         """The node I/O of the cycle; a connection renewed on the way (a reboot) is kept and recorded."""
-        acquisition = acquire(conn, self.settings, commissioning=commissioning, read_node_map=read_node_map)
+        acquisition = acquire(conn, self.settings, commissioning=commissioning, read_node_map=read_node_map,
+                              now=self.clock.wall)
         renewed = acquisition.connection
         self.conn = renewed
         if renewed.info is not conn.info:
@@ -448,9 +452,10 @@ class NodeWorker:
             return cache[1]
         settings = self.settings.threshold
         peaks: list[float] = []
-        if settings.mode == "calibrated" and history.baseline_set_at is not None:
+        if settings.mode == "calibrated" and history.active_baseline_id is not None:
             peaks = calibration_peaks(
-                session, self.settings.id, since=history.baseline_set_at, limit=settings.calibration_count
+                session, self.settings.id, after_measurement_id=history.active_baseline_id,
+                limit=settings.calibration_count,
             )
         floor = settings.floor
         if floor is None:

@@ -59,16 +59,19 @@ class FleetCollector(Collector):
         seen = GaugeMetricFamily("pipesentry_node_last_seen_timestamp_seconds", "when the node last answered",
                                  labels=labels)
         measured = GaugeMetricFamily("pipesentry_node_last_measurement_timestamp_seconds",
-                                     "acquisition time of the node's latest stored measurement", labels=labels)
+                                     "acquisition time of the node's last stored measurement", labels=labels)
         errors = CounterMetricFamily("pipesentry_node_link_events",
                                      "serial-link and gateway counters of the node (reset when the node reboots)",
                                      labels=["node", "counter"])
         with database.session() as session:
             # A decommissioned node's series end: no "node down" alert for a node taken out of service.
             nodes = list_nodes(session, include_decommissioned=False)
+            # The last stored measurement's time (by id), not the latest timestamp: a clock that stepped
+            # forward and back would otherwise show the future-dated one until the clock caught up with it.
+            last_ids = select(func.max(MeasurementRow.id)).group_by(MeasurementRow.node_id).scalar_subquery()
             last_measured = dict(
                 session.execute(
-                    select(MeasurementRow.node_id, func.max(MeasurementRow.acquired_at)).group_by(MeasurementRow.node_id)
+                    select(MeasurementRow.node_id, MeasurementRow.acquired_at).where(MeasurementRow.id.in_(last_ids))
                 ).all()
             )
         for node in nodes:

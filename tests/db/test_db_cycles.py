@@ -95,14 +95,17 @@ def test_a_cycle_whose_state_change_conflicts_stores_nothing_at_all(any_db):
     assert counts(any_db) == {"measurements": 0, "events": 0}
 
 
-def test_calibration_peaks_are_the_first_unthresholded_peaks_since_the_baseline(any_db):
+def test_calibration_peaks_are_the_first_unthresholded_peaks_stored_after_the_baseline(any_db):
     with any_db.write() as session:
+        baseline = store_sample(session, seed=99, acquired_at=T0, kind=MeasurementKind.BASELINE).id
         for seed, (peak, threshold) in enumerate([(0.5, None), (None, None), (0.1, None), (0.2, 0.3), (0.3, None)]):
-            store_sample(session, seed=seed, acquired_at=T0 + minutes(seed),
+            # the clock stepped back an hour after the baseline: stored after it all the same
+            store_sample(session, seed=seed, acquired_at=T0 - minutes(60 - seed),
                          detection=DetectionInput(peak_di=peak, threshold=threshold, state=NodeState.CALIBRATING))
     with any_db.session() as session:
-        assert calibration_peaks(session, "node-a", since=T0, limit=2) == [0.5, 0.1]
-        assert calibration_peaks(session, "node-a", since=T0, limit=10) == [0.5, 0.1, 0.3]
+        assert calibration_peaks(session, "node-a", after_measurement_id=baseline, limit=2) == [0.5, 0.1]
+        assert calibration_peaks(session, "node-a", after_measurement_id=baseline, limit=10) == [0.5, 0.1, 0.3]
+        assert calibration_peaks(session, "node-a", after_measurement_id=baseline + 2, limit=10) == [0.1, 0.3]
         assert recent_verdicts(session, "node-a", limit=5) == [(0.2, 0.3)]
 
 
