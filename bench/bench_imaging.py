@@ -33,6 +33,7 @@ from imaging.grid import Grid  # noqa: E402
 from imaging.measurement import Measurement  # noqa: E402
 from imaging.multipath import local_multipath_pixels, path_model_for, residual_map  # noqa: E402
 from imaging.pipeline import AssessSettings, assess, default_grid  # noqa: E402
+from imaging.scene import Scene  # noqa: E402
 from mocknode.physics import Acquisition, quantise_volts, simulate_volts  # noqa: E402
 from mocknode.scenario import AcquisitionSpec, DefectSpec, NodeScenario, PipeSpec  # noqa: E402
 
@@ -102,21 +103,16 @@ def multipath(args) -> None:
     base, notch, quiet, library = mock_records()
     settings = AssessSettings(wall_mm=WALL_MM)
     grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
-    model = path_model_for(base, wall_mm=WALL_MM)
+    scene = Scene.of(base, path_model_for(base, wall_mm=WALL_MM), grid, reference_amplitude_v=reference_amplitude(base))
     residual = base.traces.astype(np.float64) - notch.traces.astype(np.float64)
-    amp = reference_amplitude(base)
     first = time.perf_counter()
-    residual_map(residual, base, grid, model, reference_amplitude_v=amp)
+    residual_map(residual, scene)
     cold_ms = (time.perf_counter() - first) * 1e3
-    values = residual_feature(residual, fs_hz=base.fs_hz, excitation_hz=base.excitation_hz, cycles=base.cycles,
-                              reference_amplitude=amp, feature="analytic")
-    local = Grid(196.0, 1.0, 9, 86.0, 1.0, 9)
+    values = residual_feature(residual, scene)
+    local = scene.with_grid(Grid(196.0, 1.0, 9, 86.0, 1.0, 9))
     timings = {
-        f"multipath map {grid.shape[0]} x {grid.shape[1]} (feature + gather)":
-            lambda: residual_map(residual, base, grid, model, reference_amplitude_v=amp),
-        "local refinement map 9 x 9 at 1 mm x 1 deg":
-            lambda: local_multipath_pixels(values, base.rx_angles_deg, local, model, velocity_m_s=base.velocity_m_s,
-                                           t0_s=base.t0_s, fs_hz=base.fs_hz),
+        f"multipath map {grid.shape[0]} x {grid.shape[1]} (feature + gather)": lambda: residual_map(residual, scene),
+        "local refinement map 9 x 9 at 1 mm x 1 deg": lambda: local_multipath_pixels(values, local),
         "assess(), record with a notch": lambda: assess(notch, [base], settings),
         "assess(), defect-free record": lambda: assess(quiet, [base], settings),
         "assess(), notch, OBS library of 24 baselines": lambda: assess(notch, library, settings),

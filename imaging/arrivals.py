@@ -118,7 +118,7 @@ def _summary(m: Measurement) -> tuple[DirectArrival, np.ndarray]:
     on, so traces changed in place are analysed again and nothing stale is returned.
     """
     traces = np.ascontiguousarray(m.traces)
-    key = (hashlib.sha1(traces.view(np.uint8), usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
+    key = (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
            m.fs_hz, m.t0_s, m.tx_rx_distance_mm, m.velocity_m_s, m.excitation_hz, m.cycles)
 
     def compute() -> tuple[DirectArrival, np.ndarray]:

@@ -169,14 +169,15 @@ def best_stretch(
     7-49 % (least with absorbing ends, where noise dominates the record). A margin this thin
     is a known weakness: docs/accuracy.md. Receivers where ``rx_mask`` is False (faulty channels) are left out.
     """
+    check_compatible(baseline, current)
     stretch, residual, _ = _stretch_search(baseline, current, max_stretch=max_stretch, rx_mask=rx_mask)
     return stretch, residual
 
 
 def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch: float,
                     rx_mask: np.ndarray | None) -> tuple[float, float, np.ndarray]:
-    """``best_stretch``, and the baseline's traces stretched by the answer (all receivers, float32)."""
-    check_compatible(baseline, current)
+    """``best_stretch`` of a compatible pair, and the baseline's traces stretched by the answer (all
+    receivers, float32)."""
     if not (0 <= max_stretch < 0.1):
         raise CompensationError(f"max_stretch must be in [0, 0.1), got {max_stretch}")
     rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
@@ -249,7 +250,6 @@ def select_baseline(
     """
     if len(library) == 0:
         raise CompensationError("the baseline library is empty")
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
     compatible, mismatch = [], None
     for i, baseline in enumerate(library):
         try:
@@ -258,8 +258,31 @@ def select_baseline(
             mismatch = mismatch or str(exc)
             continue
         compatible.append(i)
+    return select_compatible_baseline(library, compatible, current, compensate=compensate, max_stretch=max_stretch,
+                                      max_residual=max_residual, rx_mask=rx_mask, shortlist=shortlist,
+                                      mismatch=mismatch)
+
+
+def select_compatible_baseline(
+    library: Sequence[Measurement],
+    compatible: Sequence[int],
+    current: Measurement,
+    *,
+    compensate: bool = True,
+    max_stretch: float = DEFAULT_MAX_STRETCH,
+    max_residual: float = DEFAULT_MAX_RESIDUAL,
+    rx_mask: np.ndarray | None = None,
+    shortlist: int | None = OBS_SHORTLIST,
+    mismatch: str | None = None,
+) -> BaselineMatch | NoValidBaseline:
+    """``select_baseline`` among the library entries ``compatible`` (indices already checked with
+    ``check_compatible``); ``mismatch``: why the others are not, for the abstention."""
+    if len(library) == 0:
+        raise CompensationError("the baseline library is empty")
+    compatible = list(compatible)
     if not compatible:
         return NoValidBaseline(None, math.inf, max_residual, f"no compatible baseline: {mismatch}")
+    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
     if not compensate:
         target = current.traces[rows].astype(np.float64)
         return _choose(library, [(_relative_residual(target, library[i].traces[rows].astype(np.float64)), i, 0.0)

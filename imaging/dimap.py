@@ -168,6 +168,12 @@ def compute_di_map(
 ) -> DIMap:
     """Algorithm 1, fast: per-receiver windowed residual energies gathered through a cached index table."""
     check_compatible(baseline, current)
+    return paper_di_map(baseline, current, grid, window_samples=window_samples)
+
+
+def paper_di_map(baseline: Measurement, current: Measurement, grid: Grid | None = None, *,
+                 window_samples: int | None = None) -> DIMap:
+    """``compute_di_map`` of a pair already known compatible (``check_compatible``)."""
     grid = grid or Grid.default(current.tx_rx_distance_mm)
     w = window_samples or default_window_samples(current)
     index, k_min, n_starts = _gather_table(
@@ -194,6 +200,7 @@ __all__ = [
     "compute_di_map",
     "default_window_samples",
     "literal_di_map",
+    "paper_di_map",
     "windowed_energy",
     "wrapped_arc_mm",
 ]

@@ -19,8 +19,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from imaging.measurement import Measurement
-from imaging.paths import PathModel, scalar_paths, stacked_paths
+from imaging.paths import scalar_paths, stacked_paths
+from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 FIT_RCOND = 1e-6  # relative cut-off on the Gram matrix's singular values (1e-3 on the design's)
@@ -57,39 +57,33 @@ def _partial_products(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[
     return shapes, table
 
 
-def _arrival_samples(reference: Measurement, model: PathModel, positions: list[tuple[float, float]]) -> np.ndarray:
+def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.ndarray:
     """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths]."""
     z = np.array([p[0] for p in positions], dtype=np.float64)
-    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - reference.rx_angles_deg[:, None]
-    c_mm_s = reference.velocity_m_s * MM_PER_M
-    _groups, length, _w = stacked_paths(model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
-    samples = np.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5).astype(np.int64)
+    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
+    c_mm_s = scene.velocity_m_s * MM_PER_M
+    _groups, length, _w = stacked_paths(scene.model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
+    samples = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     return np.ascontiguousarray(samples.transpose(1, 2, 0))
 
 
-def fit_echoes(
-    residual: np.ndarray,
-    reference: Measurement,
-    model: PathModel,
-    positions: list[tuple[float, float]],
-    *,
-    rx_mask: np.ndarray | None = None,
-) -> list[np.ndarray]:
-    """Joint least-squares fit, per receiver, of point scatterers' echoes at ``positions`` (axial_mm, angle_deg).
+def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:
+    """Joint least-squares fit, on each of the scene's healthy receivers, of point scatterers' echoes at
+    ``positions`` (axial_mm, angle_deg), along the scene's modelled paths.
 
     Returns one fitted echo array [n_rx, n] per position (their sum is the full fit). Fitting
     the scatterers together keeps one from absorbing another's echoes where they overlap.
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    mask = scene.rx_mask
     if not positions:
         return []
-    shapes, table = _partial_products(reference.fs_hz, reference.excitation_hz, reference.cycles)
+    shapes, table = _partial_products(scene.fs_hz, scene.excitation_hz, scene.cycles)
     size = shapes.shape[1]
     n_pos = len(positions)
     # Columns per receiver: (position, path, shape), shape fastest; those inside the record first.
-    starts = np.repeat(_arrival_samples(reference, model, positions).reshape(n_rx, -1), 2, axis=1)
+    starts = np.repeat(_arrival_samples(scene, positions).reshape(n_rx, -1), 2, axis=1)
     kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
     owner = np.repeat(np.arange(n_pos), starts.shape[1] // n_pos)[None, :].repeat(n_rx, axis=0)
     valid = (starts < n) & (starts + size > 0) & mask[:, None]
@@ -119,29 +113,22 @@ def fit_echoes(
     return [np.ascontiguousarray(e[:, size:size + n]) for e in total.reshape(n_pos, n_rx, -1)]
 
 
-def literal_fit_echoes(
-    residual: np.ndarray,
-    reference: Measurement,
-    model: PathModel,
-    positions: list[tuple[float, float]],
-    *,
-    rx_mask: np.ndarray | None = None,
-) -> list[np.ndarray]:
+def literal_fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:
     """The same fit with every column written out in full, receiver by receiver: the test oracle."""
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-    in_phase, quadrature = burst_pair(reference.fs_hz, reference.excitation_hz, reference.cycles)
-    c_mm_s = reference.velocity_m_s * MM_PER_M
+    mask = scene.rx_mask
+    in_phase, quadrature = burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    c_mm_s = scene.velocity_m_s * MM_PER_M
     fitted = [np.zeros_like(residual) for _ in positions]
     for m in range(n_rx):
         if not mask[m]:
             continue
         columns, owner = [], []
         for p, (axial_mm, angle_deg) in enumerate(positions):
-            rel = angle_deg - float(reference.rx_angles_deg[m])
-            for _group, length, _w in scalar_paths(model, axial_mm, rel):
-                k = math.floor((length / c_mm_s - reference.t0_s) * reference.fs_hz + 0.5)
+            rel = angle_deg - float(scene.rx_angles_deg[m])
+            for _group, length, _w in scalar_paths(scene.model, axial_mm, rel):
+                k = math.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
                 lo, hi = max(k, 0), min(k + in_phase.size, n)
                 if hi <= lo:
                     continue

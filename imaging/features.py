@@ -21,6 +21,7 @@ import numpy as np
 
 from imaging.arrivals import analytic_signal, burst_autocorrelation_peak, hann_burst, matched_envelope, matched_filter
 from imaging.dimap import windowed_energy
+from imaging.scene import Scene
 
 Feature = Literal["envelope", "squared", "analytic"]
 FEATURES: tuple[str, ...] = ("envelope", "squared", "analytic")
@@ -47,32 +48,22 @@ def remove_noise_floor(feature: np.ndarray, kind: str) -> np.ndarray:
     return feature - floor
 
 
-def residual_feature(
-    residual: np.ndarray,
-    *,
-    fs_hz: float,
-    excitation_hz: float,
-    cycles: int,
-    reference_amplitude: float,
-    feature: str = "envelope",
-    window_samples: int | None = None,
-    floor: bool = True,
-) -> np.ndarray:
-    """The normalised feature [n_rx, n_samples] of a residual [n_rx, n_samples] (float64; complex128 for analytic)."""
+def residual_feature(residual: np.ndarray, scene: Scene, *, floor: bool = True) -> np.ndarray:
+    """The normalised feature [n_rx, n_samples] of a residual [n_rx, n_samples] (float64; complex128 for
+    analytic): ``scene.feature`` at the scene's sampling and excitation, in units of its reference amplitude."""
     residual = np.asarray(residual, dtype=np.float64)
-    if reference_amplitude <= 0:
-        raise FeatureError("reference_amplitude must be positive")
+    fs_hz, excitation_hz, cycles, feature = scene.fs_hz, scene.excitation_hz, scene.cycles, scene.feature
     if feature == "envelope":
-        scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * reference_amplitude
+        scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * scene.reference_amplitude_v
         out = matched_envelope(residual, fs_hz, excitation_hz, cycles) / scale
     elif feature == "analytic":
-        scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * reference_amplitude
+        scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * scene.reference_amplitude_v
         burst = hann_burst(fs_hz, excitation_hz, cycles)
         return analytic_signal(matched_filter(residual, burst), axis=-1) / scale
     elif feature == "squared":
         burst = hann_burst(fs_hz, excitation_hz, cycles)
-        w = int(window_samples or burst.size)
-        scale = float(np.sum(np.square(burst[:w]))) * reference_amplitude**2
+        w = int(scene.window_samples or burst.size)
+        scale = float(np.sum(np.square(burst[:w]))) * scene.reference_amplitude_v**2
         out = windowed_energy(residual, w, 0, residual.shape[-1]) / scale
     else:
         raise FeatureError(f"unknown feature {feature!r}; choose one of {', '.join(FEATURES)}")

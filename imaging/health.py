@@ -56,6 +56,19 @@ def check_receivers(
 ) -> list[SensorFault]:
     """Faulty receivers, comparing each channel's direct arrival (amplitude, time) with the baseline's."""
     check_compatible(baseline, current)
+    return receiver_faults(baseline, current, min_ratio=min_ratio, max_ratio=max_ratio,
+                           max_delay_periods=max_delay_periods)
+
+
+def receiver_faults(
+    baseline: Measurement,
+    current: Measurement,
+    *,
+    min_ratio: float = MIN_AMPLITUDE_RATIO,
+    max_ratio: float = MAX_AMPLITUDE_RATIO,
+    max_delay_periods: float = MAX_DELAY_PERIODS,
+) -> list[SensorFault]:
+    """``check_receivers`` of a pair already known compatible (``check_compatible``)."""
     base, cur = direct_arrival(baseline), direct_arrival(current)
     safe = np.where(base.amplitude > 0, base.amplitude, 1.0)
     ratio = np.where(base.amplitude > 0, cur.amplitude / safe, 0.0)

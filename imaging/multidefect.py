@@ -17,14 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imaging.dimap import DIMap, default_window_samples
+from imaging.dimap import DIMap
 from imaging.echofit import burst_pair, fit_echoes  # noqa: F401  (burst_pair: re-exported)
 from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.localize import Estimate, exclusion_mask, refine_peak
-from imaging.measurement import Measurement
-from imaging.multipath import feature_power, local_multipath_pixels, multipath_pixels
-from imaging.paths import PathModel
+from imaging.multipath import local_multipath_pixels, multipath_pixels
+from imaging.scene import Scene
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
@@ -54,15 +53,11 @@ class Found:
     runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
 
 
-def severity_at(values: np.ndarray, reference: Measurement, model: PathModel, estimate: Estimate, *,
-                power: int, rx_mask: np.ndarray | None) -> float:
+def severity_at(values: np.ndarray, scene: Scene, estimate: Estimate) -> float:
     """Least-squares scatterer strength at the estimate (the map's amplitude normalisation at one pixel)."""
-    pixel = Grid(estimate.axial_mm, 1.0, 1, estimate.angle_deg, 1.0, 1)
-    value = local_multipath_pixels(
-        values, reference.rx_angles_deg, pixel, model, velocity_m_s=reference.velocity_m_s,
-        t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power, rx_mask=rx_mask, normalise="amplitude",
-    )[0, 0]
-    return float(math.sqrt(max(value, 0.0)) if power == 2 else value)
+    pixel = scene.with_grid(Grid(estimate.axial_mm, 1.0, 1, estimate.angle_deg, 1.0, 1))
+    value = local_multipath_pixels(values, pixel, normalise="amplitude")[0, 0]
+    return float(math.sqrt(max(value, 0.0)) if scene.power == 2 else value)
 
 
 def _axis_window(centre: float, step: float, half: int, lo: float, hi: float) -> tuple[float, int]:
@@ -121,7 +116,7 @@ def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple
                 peak &= candidates >= padded[1 + da:1 + da + n_a, 1 + db:1 + db + n_b]
     flat = np.flatnonzero(peak)
     best = flat[np.argsort(-candidates.ravel()[flat], kind="stable")[:count]]
-    return [tuple(int(x) for x in np.unravel_index(k, candidates.shape)) for k in best]
+    return [(int(k) // n_b, int(k) % n_b) for k in best]
 
 
 def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimate: Estimate,
@@ -137,56 +132,65 @@ def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimat
                default=0.0)
 
 
+LocalImage = Callable[[Grid], np.ndarray]  # a feature's map on a small grid
+Allowed = Callable[[Grid], np.ndarray]  # the pixels of a grid a peak may lie on
+
+
+@dataclass(frozen=True)
+class _Search:
+    """One record's defect search: the residual as recorded and the scene it is imaged in."""
+
+    original: np.ndarray
+    scene: Scene
+
+    def image(self, residual: np.ndarray) -> tuple[np.ndarray, DIMap]:
+        """(feature, its map on the scene's grid)."""
+        values = residual_feature(residual, self.scene)
+        return values, DIMap(multipath_pixels(values, self.scene), self.scene.grid, "multipath",
+                             self.scene.window_samples)
+
+    def local_image(self, values: np.ndarray) -> LocalImage:
+        return lambda local: local_multipath_pixels(values, self.scene.with_grid(local))
+
+    def fits(self, found: list[Found]) -> list[np.ndarray]:
+        """Every found defect's echoes, fitted jointly, put through the scene's filter."""
+        fits = fit_echoes(self.original, self.scene, [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found])
+        project = self.scene.project
+        return fits if project is None else [project(f) for f in fits]
+
+    def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
+        runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)
+        return Found(estimate, di_map, severity_at(values, self.scene, estimate), runner_up)
+
+
 def find_defects(
     residual: np.ndarray,
-    reference: Measurement,
-    grid: Grid,
-    model: PathModel,
+    scene: Scene,
     *,
-    feature: str,
-    reference_amplitude_v: float,
     threshold: float,
     max_defects: int,
-    rx_mask: np.ndarray | None = None,
-    circumference_mm: float | None = None,
     exclusion_mm: float = DEFAULT_EXCLUSION_MM,
-    project: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[DIMap, list[Found], Estimate]:
     """(the first map, the defects whose peak DI reaches ``threshold``, strongest first, at most
     ``max_defects``; the first map's peak, refined on the fine grid).
 
-    Maps are computed on ``grid`` (coarse); every peak is then refined by ``fine_peak``. The
+    Maps are computed on ``scene.grid`` (coarse); every peak is then refined by ``fine_peak``. The
     first map's peak is ``Found`` position 0 when it crosses the threshold; the loop runs at
     most ``max_defects`` times and stops at the first peak below the threshold, so a record
-    without a defect costs one map. ``project``: the filter the residual has been through
+    without a defect costs one map. ``scene.project``: the filter the residual has been through
     (e.g. imaging/modal.py); fitted echoes are put through it too before they are subtracted.
     """
     if max_defects < 1:
         raise MultiDefectError(f"max_defects must be at least 1, got {max_defects}")
-    circumference_mm = circumference_mm or reference.circumference_mm
-    power = feature_power(feature)
-    original = np.asarray(residual, dtype=np.float64)
-    residual = original.copy()
+    search = _Search(np.asarray(residual, dtype=np.float64), scene)
+    circumference_mm, grid = scene.circumference_mm, scene.grid
+    residual = search.original.copy()
     first: DIMap | None = None
     first_peak: Estimate | None = None
     found: list[Found] = []
     fits: list[np.ndarray] = []
-    geometry = dict(velocity_m_s=reference.velocity_m_s, t0_s=reference.t0_s, fs_hz=reference.fs_hz, power=power,
-                    rx_mask=rx_mask)
 
-    def image(res: np.ndarray) -> tuple[np.ndarray, DIMap]:
-        values = residual_feature(
-            res, fs_hz=reference.fs_hz, excitation_hz=reference.excitation_hz, cycles=reference.cycles,
-            reference_amplitude=reference_amplitude_v, feature=feature,
-            window_samples=default_window_samples(reference),
-        )
-        pixels = multipath_pixels(values, reference.rx_angles_deg, grid, model, **geometry)
-        return values, DIMap(pixels, grid, "multipath", default_window_samples(reference))
-
-    def local_image(values: np.ndarray) -> Callable[[Grid], np.ndarray]:
-        return lambda local: local_multipath_pixels(values, reference.rx_angles_deg, local, model, **geometry)
-
-    def away_from(priors: list[Found]) -> Callable[[Grid], np.ndarray]:
+    def away_from(priors: list[Found]) -> Allowed:
         def allowed(g: Grid) -> np.ndarray:
             mask = np.ones(g.shape, bool)
             for prior in priors:
@@ -196,7 +200,7 @@ def find_defects(
         return allowed
 
     for _ in range(max_defects):
-        values, di_map = image(residual)
+        values, di_map = search.image(residual)
         first = first or di_map
         allowed = away_from(list(found))
         candidates = np.where(allowed(grid), di_map.pixels, -np.inf)
@@ -205,28 +209,23 @@ def find_defects(
         i, j = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
         if found and candidates[i, j] < COARSE_MARGIN * max(threshold, MIN_RELATIVE_DI * found[0].estimate.di):
             break  # far below what a further defect must reach: refining cannot lift it there
-        estimate = fine_peak(local_image(values), di_map, int(i), int(j), allowed)
+        estimate = fine_peak(search.local_image(values), di_map, int(i), int(j), allowed)
         first_peak = first_peak or estimate
         # What the echo fit leaves of a strong defect (the model is not the pipe) can cross an
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
-        severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
-        runner_up = _runner_up(local_image(values), di_map, estimate, circumference_mm)
-        found.append(Found(estimate, di_map, severity, runner_up))
-        positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
-        fits = fit_echoes(original, reference, model, positions, rx_mask=rx_mask)
-        if project is not None:
-            fits = [project(f) for f in fits]
-        residual = original - sum(fits)
-    assert first is not None and first_peak is not None
+        found.append(search.found(values, di_map, estimate))
+        fits = search.fits(found)
+        residual = search.original - sum(fits)
+    if first is None or first_peak is None:
+        raise MultiDefectError("the map grid has no pixel to search")
     if len(found) > 1:
-        found = _refine(found, fits, original, image, local_image, reference, model, power, rx_mask,
-                        circumference_mm)
+        found = _refine(search, found, fits)
     return first, found, first_peak
 
 
-def _refine(found, fits, original, image, local_image, reference, model, power, rx_mask, circumference_mm):
+def _refine(search: _Search, found: list[Found], fits: list[np.ndarray]) -> list[Found]:
     """One pass: re-locate each defect on the residual with every *other* defect's echoes removed.
 
     The search places each defect while the later ones are still in the residual, which biases
@@ -235,11 +234,12 @@ def _refine(found, fits, original, image, local_image, reference, model, power, 
     defect's map, for its confidence); the peak is sought within REFINE_RADIUS_MM.
     """
     refined = []
+    circumference_mm = search.scene.circumference_mm
     for i, item in enumerate(found):
-        others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(original))
-        values, di_map = image(original - others)
+        others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(search.original))
+        values, di_map = search.image(search.original - others)
 
-        def near(g: Grid, item=item) -> np.ndarray:
+        def near(g: Grid, item: Found = item) -> np.ndarray:
             return exclusion_mask(g, item.estimate.axial_mm, item.estimate.angle_deg, REFINE_RADIUS_MM,
                                   circumference_mm)
 
@@ -248,8 +248,6 @@ def _refine(found, fits, original, image, local_image, reference, model, power, 
             refined.append(item)
             continue
         a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
-        estimate = fine_peak(local_image(values), di_map, int(a), int(b), near)
-        severity = severity_at(values, reference, model, estimate, power=power, rx_mask=rx_mask)
-        refined.append(Found(estimate, di_map, severity, _runner_up(local_image(values), di_map, estimate,
-                                                                     circumference_mm)))
+        estimate = fine_peak(search.local_image(values), di_map, int(a), int(b), near)
+        refined.append(search.found(values, di_map, estimate))
     return sorted(refined, key=lambda f: -f.estimate.di)

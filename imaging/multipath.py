@@ -34,12 +34,13 @@ from functools import lru_cache
 import numpy as np
 
 from imaging.arrivals import end_reflection_coefficients, reference_amplitude
-from imaging.dimap import DIMap, check_compatible, default_window_samples
+from imaging.dimap import DIMap, check_compatible
 from imaging.features import residual_feature
 from imaging.gather import accumulate, local_sums_compiled
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, stacked_paths
+from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
@@ -158,33 +159,16 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
     return total, inverse
 
 
-def _check_arguments(feature: np.ndarray, rx_angles_deg, rx_mask, normalise: str) -> tuple[np.ndarray, np.ndarray]:
-    n_rx = feature.shape[0]
-    rx_angles_deg = np.asarray(rx_angles_deg, dtype=np.float64)
-    if rx_angles_deg.shape != (n_rx,):
-        raise MultipathError(f"{rx_angles_deg.size} receiver angles for {n_rx} feature rows")
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-    if mask.shape != (n_rx,):
-        raise MultipathError("rx_mask must have one entry per receiver")
+def _check_arguments(feature: np.ndarray, scene: Scene, normalise: str) -> None:
+    if feature.ndim != 2 or feature.shape[0] != scene.n_rx:
+        raise MultipathError(f"{scene.n_rx} receiver angles for feature rows of shape {feature.shape}")
     if normalise not in NORMALISATIONS:
         raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
-    return rx_angles_deg, mask
 
 
-def multipath_pixels(
-    feature: np.ndarray,
-    rx_angles_deg: np.ndarray,
-    grid: Grid,
-    model: PathModel,
-    *,
-    velocity_m_s: float,
-    t0_s: float,
-    fs_hz: float,
-    power: int = 1,
-    rx_mask: np.ndarray | None = None,
-    normalise: str = "snr",
-) -> np.ndarray:
-    """The all-paths map [n_axial, n_angle] of a feature [n_rx, n_samples] (fast gather); complex: coherent.
+def multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr") -> np.ndarray:
+    """The all-paths map [n_axial, n_angle] on ``scene.grid`` of a feature [n_rx, n_samples] (fast gather);
+    complex: coherent.
 
     Gather tables are cached per geometry (a node's map grid), so use this for a node's
     recurring grid and ``local_multipath_pixels`` for one-off small grids. The feature is
@@ -192,14 +176,15 @@ def multipath_pixels(
     imaging/gather.py). Relative error ~1e-6 of the map's scale.
     """
     feature = np.asarray(feature)
-    rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
+    _check_arguments(feature, scene, normalise)
+    grid, mask = scene.grid, scene.rx_mask
     coherent = np.iscomplexobj(feature)
     n_rx, n = feature.shape
-    geometry = (model, float(velocity_m_s), float(t0_s), float(fs_hz), n, power)
+    geometry = (scene.model, scene.velocity_m_s, scene.t0_s, scene.fs_hz, n, scene.power)
     padded = np.zeros((n_rx, n + 1), dtype=np.complex64 if coherent else np.float32)
     padded[:, :n] = feature
-    plan = tuple(_receiver_plan(grid, rx_angles_deg))
-    total = np.zeros((coherence_groups(model),) + grid.shape, dtype=padded.dtype)
+    plan = tuple(_receiver_plan(grid, scene.rx_angles_deg))
+    total = np.zeros((coherence_groups(scene.model),) + grid.shape, dtype=padded.dtype)
     for m, (angle, roll) in enumerate(plan):
         if mask[m]:
             table = _cached_table(grid, angle, *geometry)
@@ -208,21 +193,9 @@ def multipath_pixels(
     return _combine(total, weight_sq, normalise, inverse)
 
 
-def local_multipath_pixels(
-    feature: np.ndarray,
-    rx_angles_deg: np.ndarray,
-    grid: Grid,
-    model: PathModel,
-    *,
-    velocity_m_s: float,
-    t0_s: float,
-    fs_hz: float,
-    power: int = 1,
-    rx_mask: np.ndarray | None = None,
-    normalise: str = "snr",
-    compiled: bool = True,
-) -> np.ndarray:
-    """The same map as ``multipath_pixels`` for a small one-off grid (a peak's neighbourhood, one pixel).
+def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr",
+                           compiled: bool = True) -> np.ndarray:
+    """The same map as ``multipath_pixels`` for a small one-off ``scene.grid`` (a peak's neighbourhood, one pixel).
 
     Nothing is cached: every receiver's paths to every pixel are computed here in double
     precision and the feature gathered directly, by the compiled kernel of imaging/gather.py
@@ -230,27 +203,28 @@ def local_multipath_pixels(
     keep the grid to a few hundred pixels.
     """
     feature = np.asarray(feature)
-    rx_angles_deg, mask = _check_arguments(feature, rx_angles_deg, rx_mask, normalise)
+    _check_arguments(feature, scene, normalise)
+    grid, model, rx_angles_deg, power = scene.grid, scene.model, scene.rx_angles_deg, scene.power
     coherent = np.iscomplexobj(feature)
-    rows = np.flatnonzero(mask).astype(np.int64)
+    rows = np.flatnonzero(scene.rx_mask).astype(np.int64)
     n_groups = coherence_groups(model)
     groups = np.zeros((n_groups,) + grid.shape, dtype=np.complex128 if coherent else np.float64)
     weight_sq = np.zeros((n_groups,) + grid.shape)
-    c_mm_s = velocity_m_s * MM_PER_M
+    c_mm_s = scene.velocity_m_s * MM_PER_M
     if rows.size and compiled and local_sums_compiled is not None:
         families = model.families()
         offset, sign, image, factor = (np.array([getattr(f, name) for f in families], dtype=np.float64)
                                        for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
         data = np.ascontiguousarray(feature, dtype=np.complex128 if coherent else np.float64)
-        local_sums_compiled(data, rows, rx_angles_deg, np.ascontiguousarray(grid.axial_mm),
+        local_sums_compiled(data, rows, rx_angles_deg.copy(), np.ascontiguousarray(grid.axial_mm),
                             np.ascontiguousarray(grid.angle_deg), offset, sign, image, factor, model.wraps,
                             float(model.circumference_mm), float(model.wavelength_mm), bool(model.polarization),
-                            float(c_mm_s), float(t0_s), float(fs_hz), int(power), groups, weight_sq)
+                            float(c_mm_s), scene.t0_s, scene.fs_hz, int(power), groups, weight_sq)
     elif rows.size:
         n = feature.shape[1]
         rel = grid.angle_deg[None, None, :] - rx_angles_deg[rows, None, None]
         family, length, weight = stacked_paths(model, grid.axial_mm[None, :, None], rel)  # [P, n_rx, n_ax, n_an]
-        k = np.floor((length / c_mm_s - t0_s) * fs_hz + 0.5)
+        k = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
         inside = (k >= 0) & (k < n)
         w = np.where(inside, weight**power, 0.0)
         samples = feature[rows[None, :, None, None], np.where(inside, k, 0).astype(np.intp)]
@@ -259,25 +233,13 @@ def local_multipath_pixels(
     return _combine(groups, weight_sq, normalise)
 
 
-def literal_multipath_pixels(
-    feature: np.ndarray,
-    rx_angles_deg: np.ndarray,
-    grid: Grid,
-    model: PathModel,
-    *,
-    velocity_m_s: float,
-    t0_s: float,
-    fs_hz: float,
-    power: int = 1,
-    rx_mask: np.ndarray | None = None,
-    normalise: str = "snr",
-) -> np.ndarray:
+def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr") -> np.ndarray:
     """The same map pixel by pixel, receiver by receiver, path by path: the test oracle."""
     feature = np.asarray(feature)
+    grid, model, power = scene.grid, scene.model, scene.power
     coherent = np.iscomplexobj(feature)
     n_rx, n = feature.shape
-    mask = np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
-    c_mm_s = velocity_m_s * MM_PER_M
+    c_mm_s = scene.velocity_m_s * MM_PER_M
     n_fam = coherence_groups(model)
     out = np.zeros(grid.shape)
     for i, z in enumerate(grid.axial_mm):
@@ -285,10 +247,10 @@ def literal_multipath_pixels(
             sums = [0j] * n_fam
             weight_sq = [0.0] * n_fam
             for m in range(n_rx):
-                if not mask[m]:
+                if not scene.rx_mask[m]:
                     continue
-                for family, length, w in scalar_paths(model, float(z), float(theta) - float(rx_angles_deg[m])):
-                    k = math.floor((length / c_mm_s - t0_s) * fs_hz + 0.5)
+                for family, length, w in scalar_paths(model, float(z), float(theta) - float(scene.rx_angles_deg[m])):
+                    k = math.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
                     if not 0 <= k < n:
                         continue
                     sums[family] += w**power * complex(feature[m, k])
@@ -343,45 +305,10 @@ def path_model_for(
     )
 
 
-def feature_power(feature: str) -> int:
-    """Weight exponent q: 2 for an energy feature, 1 for amplitude features."""
-    return 2 if feature == "squared" else 1
-
-
-def residual_map(
-    residual: np.ndarray,
-    reference: Measurement,
-    grid: Grid,
-    model: PathModel,
-    *,
-    feature: str = "analytic",
-    reference_amplitude_v: float,
-    rx_mask: np.ndarray | None = None,
-    normalise: str = "snr",
-) -> DIMap:
-    """The all-paths map of a residual [n_rx, n_samples] recorded with ``reference``'s geometry."""
-    values = residual_feature(
-        residual,
-        fs_hz=reference.fs_hz,
-        excitation_hz=reference.excitation_hz,
-        cycles=reference.cycles,
-        reference_amplitude=reference_amplitude_v,
-        feature=feature,
-        window_samples=default_window_samples(reference),
-    )
-    pixels = multipath_pixels(
-        values,
-        reference.rx_angles_deg,
-        grid,
-        model,
-        velocity_m_s=reference.velocity_m_s,
-        t0_s=reference.t0_s,
-        fs_hz=reference.fs_hz,
-        power=feature_power(feature),
-        rx_mask=rx_mask,
-        normalise=normalise,
-    )
-    return DIMap(pixels, grid, "multipath", default_window_samples(reference))
+def residual_map(residual: np.ndarray, scene: Scene, *, normalise: str = "snr") -> DIMap:
+    """The all-paths map on ``scene.grid`` of a residual [n_rx, n_samples] recorded in ``scene``."""
+    pixels = multipath_pixels(residual_feature(residual, scene), scene, normalise=normalise)
+    return DIMap(pixels, scene.grid, "multipath", scene.window_samples)
 
 
 def compute_multipath_map(
@@ -396,10 +323,7 @@ def compute_multipath_map(
 ) -> DIMap:
     """The all-paths DI map of ``current`` against ``baseline`` (no temperature compensation here)."""
     check_compatible(baseline, current)
-    grid = grid or Grid.default(current.tx_rx_distance_mm)
-    model = model or path_model_for(baseline)
+    scene = Scene.of(baseline, model or path_model_for(baseline), grid or Grid.default(current.tx_rx_distance_mm),
+                     feature=feature, reference_amplitude_v=reference_amplitude(baseline), rx_mask=rx_mask)
     residual = baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
-    return residual_map(
-        residual, baseline, grid, model, feature=feature, reference_amplitude_v=reference_amplitude(baseline),
-        rx_mask=rx_mask, normalise=normalise,
-    )
+    return residual_map(residual, scene, normalise=normalise)

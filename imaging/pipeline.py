@@ -23,18 +23,19 @@ from imaging.compensation import (
     STRETCH_PER_DEGC,
     BaselineMatch,
     NoValidBaseline,
-    select_baseline,
+    select_compatible_baseline,
 )
 from imaging.detection import default_threshold
-from imaging.dimap import DIMap, check_compatible, compute_di_map, windowed_energy
+from imaging.dimap import BaselineMismatch, DIMap, check_compatible, paper_di_map, windowed_energy
 from imaging.features import FEATURES
 from imaging.grid import Grid
-from imaging.health import SensorFault, check_receivers, healthy_mask
+from imaging.health import SensorFault, healthy_mask, receiver_faults
 from imaging.localize import Confidence, Estimate, locate_peak, peak_confidence
 from imaging.measurement import Measurement
 from imaging.modal import default_modal_orders, remove_low_orders
 from imaging.multidefect import find_defects
 from imaging.multipath import path_model_for
+from imaging.scene import Scene
 
 METHODS: tuple[str, ...] = ("multipath", "paper")
 
@@ -185,7 +186,7 @@ def _paper(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndar
     masked = np.where(mask[:, None], current.traces, match.baseline.traces)
     from dataclasses import replace
 
-    raw = compute_di_map(match.baseline, replace(current, traces=masked), grid)
+    raw = paper_di_map(match.baseline, replace(current, traces=masked), grid)
     di_map = DIMap(raw.pixels / paper_reference_energy(match.baseline), grid, "paper", raw.window_samples)
     peak = locate_peak(di_map)
     defects = []
@@ -196,30 +197,35 @@ def _paper(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndar
     return di_map, peak, defects
 
 
-def _multipath(match: BaselineMatch, entry: Measurement, current: Measurement, grid: Grid, mask: np.ndarray,
-               settings: AssessSettings, threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
-    # End reflections and the reference amplitude are read off the library ``entry`` itself: a
-    # stretch of <= 0.5 % moves its arrivals, not their amplitudes, and the entry's values are
-    # memoised (imaging/arrivals.py), so a node's baselines are analysed once, not per measurement.
+def scene_for(match: BaselineMatch, entry: Measurement, current: Measurement, grid: Grid, mask: np.ndarray,
+              settings: AssessSettings) -> Scene:
+    """What the record and its matched baseline share, resolved once (imaging/scene.py).
+
+    End reflections and the reference amplitude are read off the library ``entry`` itself: a
+    stretch of <= 0.5 % moves its arrivals, not their amplitudes, and the entry's values are
+    memoised (imaging/arrivals.py), so a node's baselines are analysed once, not per measurement.
+    """
     model = path_model_for(entry, wall_mm=settings.wall_mm, model_ends=settings.model_ends)
-    residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     orders = settings.modal_orders_for(current.n_rx)
     project = None
     if orders is not None:
         def project(x: np.ndarray) -> np.ndarray:
             return remove_low_orders(x, current.rx_angles_deg, orders, mask)
 
-        residual = project(residual)
-    first, found, first_peak = find_defects(
-        residual, match.baseline, grid, model, feature=settings.feature,
-        reference_amplitude_v=reference_amplitude(entry), threshold=threshold,
-        max_defects=settings.max_defects, rx_mask=mask, circumference_mm=model.circumference_mm,
-        project=project,
-    )
+    return Scene.of(match.baseline, model, grid, feature=settings.feature,
+                    reference_amplitude_v=reference_amplitude(entry), rx_mask=mask, project=project)
+
+
+def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, settings: AssessSettings,
+               threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
+    residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
+    if scene.project is not None:
+        residual = scene.project(residual)
+    first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
     peak = found[0].estimate if found else first_peak
     defects = [
         Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di,
-               peak_confidence(f.di_map, f.estimate, circumference_mm=model.circumference_mm,
+               peak_confidence(f.di_map, f.estimate, circumference_mm=scene.circumference_mm,
                                runner_up_di=f.runner_up_di), f.severity)
         for f in found
     ]
@@ -233,19 +239,20 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     threshold = settings.effective_threshold
     if len(baselines) == 0:
         raise SettingsError("the baseline library is empty")
+    # The one compatibility check of each (baseline, current) pair on this route.
+    mismatches = [_mismatch(b, current) for b in baselines]
+    compatible = [i for i, why in enumerate(mismatches) if why is None]
     faults: list[SensorFault] = []
-    if settings.check_health:
-        first_compatible = next((b for b in baselines if _compatible(b, current)), None)
-        if first_compatible is not None:
-            faults = check_receivers(first_compatible, current)
+    if settings.check_health and compatible:
+        faults = receiver_faults(baselines[compatible[0]], current)
         # Most channels "faulty" at once is a common-mode change (another pipe, a wrong or
         # stale baseline), not broken transducers: leave it to baseline selection to judge.
         if len(faults) > current.n_rx // 2:
             faults = []
     mask = healthy_mask(current.n_rx, faults)
-    match = select_baseline(
-        baselines, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
-        max_residual=settings.max_residual, rx_mask=mask,
+    match = select_compatible_baseline(
+        baselines, compatible, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
+        max_residual=settings.max_residual, rx_mask=mask, mismatch=next((w for w in mismatches if w), None),
     )
     limit = settings.max_compensated_stretch
     if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:
@@ -257,7 +264,8 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     if settings.method == "paper":
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
-        di_map, peak, defects = _multipath(match, baselines[match.index], current, grid, mask, settings, threshold)
+        scene = scene_for(match, baselines[match.index], current, grid, mask, settings)
+        di_map, peak, defects = _multipath(match, current, scene, settings, threshold)
     elapsed = (time.perf_counter() - start) * 1e3
     return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed)
 
@@ -280,7 +288,7 @@ MULTIPATH_STEP_MM = 4.0  # the multipath map (search and storage); peaks are ref
 MULTIPATH_MAX_STEP_DEG = 4.0
 
 
-def default_grid(method: str, tx_rx_distance_mm: float, rx_angles_deg: Sequence[float] | None = None) -> Grid:
+def default_grid(method: str, tx_rx_distance_mm: float, rx_angles_deg: Sequence[float] | np.ndarray | None = None) -> Grid:
     """1 mm x 1 deg for the paper's method. For multipath 4 mm x (at most) 4 deg: its peaks are
     tens of mm wide, and every peak is refined on a local 1 mm x 1 deg grid (imaging/multidefect.py).
     The angle step divides the receiver spacing of an evenly spaced ring (3.75 deg for 8 or 16
@@ -296,9 +304,10 @@ def default_grid(method: str, tx_rx_distance_mm: float, rx_angles_deg: Sequence[
     return Grid.default(tx_rx_distance_mm, axial_step_mm=MULTIPATH_STEP_MM, angle_step_deg=step_deg)
 
 
-def _compatible(baseline: Measurement, current: Measurement) -> bool:
+def _mismatch(baseline: Measurement, current: Measurement) -> str | None:
+    """Why ``baseline`` cannot be compared with ``current`` (None: it can)."""
     try:
         check_compatible(baseline, current)
-    except ValueError:
-        return False
-    return True
+    except BaselineMismatch as exc:
+        return str(exc)
+    return None

@@ -15,6 +15,7 @@ from imaging.echofit import fit_echoes, literal_fit_echoes
 from imaging.grid import Grid
 from imaging.multidefect import find_defects
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
+from imaging.scene import Scene
 from tests.support.synthetic import baseline_and_scatterers, measurement
 
 needs_numba = pytest.mark.skipif(not gather.compiled(), reason="numba is not installed")
@@ -44,15 +45,14 @@ def test_compiled_gather_equals_the_numpy_gather(data):
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(random_problem())
 def test_numpy_fallback_map_matches_the_literal_sum(problem):
-    feature, rx, grid, model, timing, mask, normalise, power = problem
-    kwargs = dict(rx_mask=mask, normalise=normalise, power=power, **timing)
+    feature, scene, normalise = problem
     original = multipath.accumulate
     multipath.accumulate = gather.accumulate_numpy
     try:
-        fast = multipath_pixels(feature, rx, grid, model, **kwargs)
+        fast = multipath_pixels(feature, scene, normalise=normalise)
     finally:
         multipath.accumulate = original
-    literal = literal_multipath_pixels(feature, rx, grid, model, **kwargs)
+    literal = literal_multipath_pixels(feature, scene, normalise=normalise)
     scale = max(float(np.abs(literal).max()), 1e-12)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)
 
@@ -60,10 +60,9 @@ def test_numpy_fallback_map_matches_the_literal_sum(problem):
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(random_problem(), st.booleans())
 def test_local_map_matches_the_literal_sum(problem, compiled):
-    feature, rx, grid, model, timing, mask, normalise, power = problem
-    kwargs = dict(rx_mask=mask, normalise=normalise, power=power, **timing)
-    local = local_multipath_pixels(feature, rx, grid, model, compiled=compiled, **kwargs)
-    literal = literal_multipath_pixels(feature, rx, grid, model, **kwargs)
+    feature, scene, normalise = problem
+    local = local_multipath_pixels(feature, scene, normalise=normalise, compiled=compiled)
+    literal = literal_multipath_pixels(feature, scene, normalise=normalise)
     np.testing.assert_allclose(local, literal, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(literal).max())))
 
 
@@ -79,10 +78,10 @@ def test_echo_fit_equals_the_literal_fit(data):
     model = path_model_for(base, model_ends=ends)
     positions = [(data.draw(st.floats(-20, 420)), data.draw(st.floats(0, 360)))
                  for _ in range(data.draw(st.integers(1, 3)))]
-    mask = rng.random(base.n_rx) > 0.2
+    scene = Scene.of(base, model, rx_mask=rng.random(base.n_rx) > 0.2)
     residual = rng.standard_normal(base.traces.shape)
-    fast = fit_echoes(residual, base, model, positions, rx_mask=mask)
-    slow = literal_fit_echoes(residual, base, model, positions, rx_mask=mask)
+    fast = fit_echoes(residual, scene, positions)
+    slow = literal_fit_echoes(residual, scene, positions)
     scale = max(float(np.abs(sum(slow)).max()), 1e-12)
     # The total fit is a projection (unique); the split between positions is unique unless two
     # positions' columns (nearly) coincide, where either solver's minimum-norm split is rounding.
@@ -91,10 +90,10 @@ def test_echo_fit_equals_the_literal_fit(data):
 
 def test_echo_fit_split_equals_the_literal_split_for_distinct_positions():
     base, cur = baseline_and_scatterers([(120.0, 60.0, 0.05), (290.0, 230.0, 0.04)], noise_rms=5e-4, seed=2)
-    model = path_model_for(base)
+    scene = Scene.of(base, path_model_for(base))
     residual = base.traces.astype(np.float64) - cur.traces
     positions = [(120.0, 60.0), (290.0, 230.0)]
-    for fast, slow in zip(fit_echoes(residual, base, model, positions), literal_fit_echoes(residual, base, model, positions), strict=True):
+    for fast, slow in zip(fit_echoes(residual, scene, positions), literal_fit_echoes(residual, scene, positions), strict=True):
         np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-9 * float(np.abs(slow).max()))
 
 
@@ -116,11 +115,10 @@ def test_bspline_resampler_matches_a_cubic_spline_inside_the_record(seed, stretc
 
 def test_coarse_to_fine_search_finds_the_peak_of_the_full_fine_map():
     base, cur = baseline_and_scatterers([(210.0, 135.0, 0.05)], noise_rms=1e-3, seed=11)
-    model = path_model_for(base)
+    scene = Scene.of(base, path_model_for(base), reference_amplitude_v=reference_amplitude(base))
     residual = base.traces.astype(np.float64) - cur.traces
-    common = dict(feature="analytic", reference_amplitude_v=reference_amplitude(base), threshold=0.0, max_defects=1)
-    coarse = find_defects(residual, base, Grid.default(400.0, 4.0, 4.0), model, **common)[2]
-    fine = find_defects(residual, base, Grid.default(400.0, 1.0, 1.0), model, **common)[2]
+    coarse = find_defects(residual, scene.with_grid(Grid.default(400.0, 4.0, 4.0)), threshold=0.0, max_defects=1)[2]
+    fine = find_defects(residual, scene.with_grid(Grid.default(400.0, 1.0, 1.0)), threshold=0.0, max_defects=1)[2]
     assert abs(coarse.axial_mm - fine.axial_mm) < 0.5 and abs(coarse.angle_deg - fine.angle_deg) < 0.5
     assert coarse.di == pytest.approx(fine.di, rel=1e-5)
 

@@ -8,6 +8,7 @@ from imaging.analysis import analyze
 from imaging.grid import Grid
 from imaging.multipath import literal_multipath_pixels, multipath_pixels
 from imaging.paths import PathModel
+from imaging.scene import Scene
 from imaging.timing import surface_distance_mm
 from tests.support.synthetic import CIRCUMFERENCE_MM, baseline_and_scatterers
 
@@ -45,16 +46,17 @@ def random_problem(draw):
     mask = rng.random(n_rx) > 0.3
     timing = dict(velocity_m_s=draw(st.floats(1000, 6000)), t0_s=draw(st.floats(-1e-4, 1e-4)),
                   fs_hz=draw(st.floats(2e5, 5e6)))
-    return feature, rx, grid, model, timing, mask, draw(st.sampled_from(["snr", "amplitude"])), draw(st.sampled_from([1, 2]))
+    scene = Scene(rx_angles_deg=rx, rx_mask=mask, excitation_hz=85e3, cycles=5, window_samples=1, model=model,
+                  grid=grid, power=draw(st.sampled_from([1, 2])), **timing)
+    return feature, scene, draw(st.sampled_from(["snr", "amplitude"]))
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(random_problem())
 def test_fast_multipath_map_matches_the_literal_sum(problem):
-    feature, rx, grid, model, timing, mask, normalise, power = problem
-    kwargs = dict(rx_mask=mask, normalise=normalise, power=power, **timing)
-    fast = multipath_pixels(feature, rx, grid, model, **kwargs)
-    literal = literal_multipath_pixels(feature, rx, grid, model, **kwargs)
+    feature, scene, normalise = problem
+    fast = multipath_pixels(feature, scene, normalise=normalise)
+    literal = literal_multipath_pixels(feature, scene, normalise=normalise)
     scale = max(float(np.abs(literal).max()), 1e-12)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)  # single-precision gather
 
