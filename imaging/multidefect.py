@@ -1,9 +1,10 @@
 """Several defects in one record: image, take the strongest peak, remove that scatterer's echoes, repeat.
 
-The echoes of point scatterers at the positions found so far are modelled on every receiver
-as one burst per modelled path (imaging/paths.py), each with a free amplitude and carrier
-phase (a burst and its quadrature twin), fitted jointly to that receiver's residual by least
-squares and subtracted from it. The next peak is then sought on the cleaned residual, away from the peaks
+The echoes of point scatterers at the positions found so far are modelled as one burst per
+modelled path (imaging/paths.py) with the path's expected amplitude on each receiver and one
+free amplitude and carrier phase per path (a burst and its quadrature twin) shared by all
+receivers — the map's own scatterer model (imaging/echofit.py ``fit_smooth_echoes``) — fitted
+jointly over all receivers and scatterers by least squares and subtracted from the residual. The next peak is then sought on the cleaned residual, away from the peaks
 already found, until it falls below the detection threshold, or below MIN_RELATIVE_DI of the
 first defect's DI (what the fit leaves of a strong defect is not a new one), or
 ``max_defects`` is reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imaging.dimap import DIMap
-from imaging.echofit import burst_pair, fit_echoes  # noqa: F401  (burst_pair: re-exported)
+from imaging.echofit import burst_pair, fit_echoes, fit_smooth_echoes  # noqa: F401  (burst_pair: re-exported)
 from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.localize import Estimate, exclusion_mask, refine_peak
@@ -152,9 +153,12 @@ class _Search:
     def local_image(self, values: np.ndarray) -> LocalImage:
         return lambda local: local_multipath_pixels(values, self.scene.with_grid(local))
 
-    def fits(self, found: list[Found]) -> list[np.ndarray]:
-        """Every found defect's echoes, fitted jointly, put through the scene's filter."""
-        fits = fit_echoes(self.original, self.scene, [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found])
+    def fits(self, found: list[Found], *, shared: bool = True) -> list[np.ndarray]:
+        """Every found defect's echoes, fitted jointly, put through the scene's filter. ``shared``: one
+        amplitude per path for all receivers (``fit_smooth_echoes``), else one per path and receiver."""
+        positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
+        fits = (fit_smooth_echoes(self.original, self.scene, positions) if shared
+                else fit_echoes(self.original, self.scene, positions))
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
 

@@ -26,10 +26,13 @@ def test_two_scatterers_are_both_found_where_each_images_alone():
     result = assess(cur, [base], SETTINGS)
     assert len(result.defects) == 2
     # Alone, the scatterer at 120 mm images ~13 mm off on this synthetic record (the map's own
-    # peak, 1 mm grid): the search must find both, each within a few mm of where it images alone.
+    # peak, 1 mm grid): with the other's echoes fitted and removed, each is found at least as
+    # close to the truth as where it images alone (measured: 5.2 and 0.9 mm).
     alone = [assess(c, [b], SETTINGS).defects[0] for b, c in
              (baseline_and_scatterers([s], noise_rms=5e-4, seed=2) for s in scatterers)]
-    assert max(_errors(result.defects, [(d.axial_mm, d.angle_deg) for d in alone])) < 5.0
+    alone_errors = _errors(alone, truths)
+    for error, alone_error in zip(_errors(result.defects, truths), alone_errors, strict=True):
+        assert error <= alone_error + 1.0
     assert max(_errors(result.defects, truths)) < 16.0
     assert result.defects[0].di >= result.defects[1].di
 
