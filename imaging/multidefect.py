@@ -6,8 +6,9 @@ free amplitude and carrier phase per path (a burst and its quadrature twin) shar
 receivers — the map's own scatterer model (imaging/echofit.py ``fit_smooth_echoes``) — fitted
 jointly over all receivers and scatterers by least squares and subtracted from the residual. The next peak is then sought on the cleaned residual, away from the peaks
 already found, until it falls below the detection threshold, or below MIN_RELATIVE_DI of the
-first defect's DI (what the fit leaves of a strong defect is not a new one), or
-``max_defects`` is reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with
+first defect's DI (what the fit leaves of a strong defect is not a new one), or has a rival peak
+elsewhere nearly as high (UNRESOLVED_PEAK_RATIO: a map of fit leftovers is flat, a second
+scatterer stands out of it), or ``max_defects`` is reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with
 the others' echoes removed.
 """
 from __future__ import annotations
@@ -28,6 +29,7 @@ from imaging.scene import Scene
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
+UNRESOLVED_PEAK_RATIO = 0.95  # ... and stand out: no rival peak (beyond 50 mm) at this fraction of its DI
 REFINE_RADIUS_MM = 20.0  # the refinement pass may move an estimate this far at most
 FINE_STEP_MM = 1.0  # peaks found on the (coarse) map grid are refined on a local grid this fine
 FINE_STEP_DEG = 1.0
@@ -219,7 +221,10 @@ def find_defects(
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
-        found.append(search.found(values, di_map, estimate))
+        item = search.found(values, di_map, estimate)
+        if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
+            break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
+        found.append(item)
         fits = search.fits(found)
         residual = search.original - sum(fits)
     if first is None or first_peak is None:

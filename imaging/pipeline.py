@@ -35,6 +35,7 @@ from imaging.measurement import Measurement
 from imaging.modal import default_modal_orders, remove_low_orders
 from imaging.multidefect import find_defects
 from imaging.multipath import path_model_for
+from imaging.region import Region, localization_region
 from imaging.scene import Scene
 
 METHODS: tuple[str, ...] = ("multipath", "paper")
@@ -102,13 +103,15 @@ class AssessSettings:
 
 @dataclass(frozen=True)
 class Defect:
-    """A detected defect: position, DI, confidence and severity (scattered / direct amplitude)."""
+    """A detected defect: position, DI, confidence, severity (scattered / direct amplitude) and its
+    90 % localization region (imaging/region.py; ``region.localized`` False: position not resolved)."""
 
     axial_mm: float
     angle_deg: float
     di: float
     confidence: Confidence
     severity: float
+    region: Region
 
     def as_dict(self) -> dict:
         return {
@@ -117,6 +120,7 @@ class Defect:
             "di": self.di,
             "severity": self.severity,
             "confidence": self.confidence.as_dict(),
+            "region": self.region.as_dict(),
         }
 
 
@@ -193,7 +197,8 @@ def _paper(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndar
     if peak.di >= threshold:
         conf = peak_confidence(di_map, peak, circumference_mm=circ)
         severity = math.sqrt(max(peak.di, 0.0))
-        defects.append(Defect(peak.axial_mm, peak.angle_deg, peak.di, conf, severity))
+        region = localization_region(conf, circumference_mm=circ, axial_span_mm=current.tx_rx_distance_mm)
+        defects.append(Defect(peak.axial_mm, peak.angle_deg, peak.di, conf, severity, region))
     return di_map, peak, defects
 
 
@@ -223,12 +228,13 @@ def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, setting
         residual = scene.project(residual)
     first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
     peak = found[0].estimate if found else first_peak
-    defects = [
-        Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di,
-               peak_confidence(f.di_map, f.estimate, circumference_mm=scene.circumference_mm,
-                               runner_up_di=f.runner_up_di), f.severity)
-        for f in found
-    ]
+    defects = []
+    for f in found:
+        conf = peak_confidence(f.di_map, f.estimate, circumference_mm=scene.circumference_mm,
+                               runner_up_di=f.runner_up_di)
+        region = localization_region(conf, circumference_mm=current.circumference_mm,
+                                     axial_span_mm=current.tx_rx_distance_mm)
+        defects.append(Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di, conf, f.severity, region))
     return first, peak, defects
 
 

@@ -33,6 +33,10 @@ def format_summary(result) -> str:
             f"defect {k}: axial {d.axial_mm:.1f} mm from the Tx ring, angle {d.angle_deg:.1f} deg, DI {d.di:.6g}, "
             f"severity {d.severity:.3g}, confidence {d.confidence.score:.2f}"
         )
+        region = d.region
+        lines.append(f"  {region.coverage:.0%} region: +-{region.axial_half_mm:.0f} mm axial, "
+                     f"+-{region.circumferential_half_mm:.0f} mm round the pipe"
+                     + ("" if region.localized else f"; position not resolved: {region.reason}"))
     return "\n".join(lines)
 
 
