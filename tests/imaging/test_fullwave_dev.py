@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from imaging.analysis import analyze
 from imaging.formats import load_measurement
 from imaging.pipeline import AssessSettings, assess
 from imaging.timing import surface_distance_mm
