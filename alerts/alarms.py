@@ -28,7 +28,7 @@ end's id derives from the alarm's). The rules themselves (``alarm_change``) are 
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from enum import StrEnum
@@ -299,6 +299,7 @@ def alarm_events(
     angle_deg: float | None,
     reason: str | None,
     occurred_at: datetime | None = None,
+    region: Mapping[str, Any] | None = None,
 ) -> list[EventInput]:
     """The outbox events of ``change`` for the measurement stored as ``measurement_id``: the ends
     first (each to the sinks that had the alarm), then the raises. ``reason``: why the imaging
@@ -307,7 +308,7 @@ def alarm_events(
         return alarm_state_event(
             settings, kind, node_id=node_id, from_state=from_state, to_state=to_state, measurement_id=measurement_id,
             peak_di=peak_di, threshold=threshold, axial_mm=axial_mm, angle_deg=angle_deg, occurred_at=occurred_at,
-            **alarm,
+            region=region, **alarm,
         )
 
     events = []

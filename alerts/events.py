@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Mapping
 from dataclasses import replace
 from datetime import datetime
 from enum import StrEnum
@@ -120,6 +121,7 @@ def state_change_event(
     angle_deg: float | None = None,
     occurred_at: datetime | None = None,
     reason: str | None = None,
+    region: Mapping[str, Any] | None = None,
 ) -> EventInput | None:
     """The alert of a plain state transition, or None when it is not one operators need.
 
@@ -147,7 +149,7 @@ def state_change_event(
     return alarm_state_event(
         settings, kind, node_id=node_id, from_state=before, to_state=after, measurement_id=measurement_id,
         peak_di=peak_di, threshold=threshold, axial_mm=axial_mm, angle_deg=angle_deg, occurred_at=occurred_at,
-        reason=reason,
+        reason=reason, region=region,
     )
 
 
@@ -169,6 +171,7 @@ def alarm_state_event(
     ended_by: EndedBy | None = None,
     routing: Severity | None = None,
     sinks: tuple[str, ...] | None = None,
+    region: Mapping[str, Any] | None = None,
 ) -> EventInput:
     """One of the node's damage/blind alarm events (``STATE_KINDS``), raise or end.
 
@@ -201,7 +204,7 @@ def alarm_state_event(
     if ends:
         ended_by = ended_by or EndedBy(cause="recovery")
     detection = _detection(peak_di, threshold)
-    location = _location(axial_mm, angle_deg)
+    location = _location(axial_mm, angle_deg, region)
     payload = StateChangePayload(
         **_common(settings, eid, kind, node_id, severity, routing, occurred_at, measurement_id),
         summary=_state_summary(kind, node_id, before, after, detection, location, reason, ended_by),
@@ -517,9 +520,11 @@ def detection_of(peak_di: float | None, threshold: float | None) -> Detection | 
     return _detection(peak_di, threshold)
 
 
-def location_of(axial_mm: float | None, angle_deg: float | None) -> Location | None:
-    """The payload's ``location`` (None when the estimate is unknown)."""
-    return _location(axial_mm, angle_deg)
+def location_of(axial_mm: float | None, angle_deg: float | None,
+                region: Mapping[str, Any] | None = None) -> Location | None:
+    """The payload's ``location`` (None when the estimate is unknown); ``region``: the estimate's 90 %
+    localization region as the imaging gives it (``Defect.as_dict()["region"]``), when known."""
+    return _location(axial_mm, angle_deg, region)
 
 
 def _detection(peak_di: float | None, threshold: float | None) -> Detection | None:
@@ -530,10 +535,16 @@ def _detection(peak_di: float | None, threshold: float | None) -> Detection | No
                      di_over_threshold=None if ratio is None else round(float(ratio), 4))
 
 
-def _location(axial_mm: float | None, angle_deg: float | None) -> Location | None:
+def _location(axial_mm: float | None, angle_deg: float | None,
+              region: Mapping[str, Any] | None = None) -> Location | None:
     if axial_mm is None or angle_deg is None:
         return None
-    return Location(axial_mm=round(float(axial_mm), 1), angle_deg=round(float(angle_deg), 1))
+    if not region:
+        return Location(axial_mm=round(float(axial_mm), 1), angle_deg=round(float(angle_deg), 1))
+    return Location(axial_mm=round(float(axial_mm), 1), angle_deg=round(float(angle_deg), 1),
+                    axial_half_mm=round(float(region["axial_half_mm"]), 1),
+                    circumferential_half_mm=round(float(region["circumferential_half_mm"]), 1),
+                    localized=bool(region.get("localized", True)))
 
 
 def location_text(location: dict[str, Any] | None) -> str:

@@ -90,10 +90,18 @@ class Detection(PayloadPart):
 
 
 class Location(PayloadPart):
-    """The estimated defect position, 0.1 mm / 0.1 degree: axial from the Tx ring, angle on the circumference."""
+    """The estimated defect position, 0.1 mm / 0.1 degree: axial from the Tx ring, angle on the circumference;
+    with its 90 % localization region when the detection has one (imaging/region.py)."""
+
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"axial_half_mm", "circumferential_half_mm",
+                                                             "localized"})
 
     axial_mm: float
     angle_deg: float
+    axial_half_mm: float | None = Field(None, description="90 % region: half-width along the axis, mm")
+    circumferential_half_mm: float | None = Field(None, description="90 % region: half-width round the pipe, mm")
+    localized: bool | None = Field(None, description="false: the map does not resolve the position; the region "
+                                   "spans what the evidence leaves open")
 
 
 class Links(PayloadPart):

@@ -99,6 +99,7 @@ class Verdict:
             to_state=self.state.value, measurement_id=measurement_id, peak_di=detection.peak_di,
             threshold=detection.threshold, axial_mm=detection.axial_mm, angle_deg=detection.angle_deg,
             reason=detection.abstain_reason, occurred_at=now,
+            region=(detection.defects[0].get("region") if detection.defects else None),
         )
         events += sensor_fault_events(
             alerting, self.sensor_faults, node_id=node_id, measurement_id=measurement_id, state=self.state.value, now=now

@@ -65,6 +65,18 @@ class Baseline(_Out):
     deactivated_at: datetime | None
 
 
+class LocalizationRegion(BaseModel):
+    """Where the defect lies with the stated probability: |axial error| <= axial_half_mm and |error round
+    the pipe| <= circumferential_half_mm (imaging/region.py; calibrated on full-wave data, docs/accuracy.md)."""
+
+    coverage: float = Field(0.9, description="probability that the region holds the defect")
+    axial_half_mm: float = Field(description="half-width along the axis")
+    circumferential_half_mm: float = Field(description="half-width round the pipe, as arc on the wall")
+    localized: bool = Field(True, description="false: the map does not resolve the position (see reason); the "
+                            "region then spans what the evidence leaves open")
+    reason: str | None = Field(None, description="why the position is not resolved")
+
+
 class DefectEstimate(BaseModel):
     """One defect found above the threshold (the strongest first)."""
 
@@ -73,6 +85,8 @@ class DefectEstimate(BaseModel):
     di: float | None = Field(None, description="its DI")
     severity: float | None = Field(None, description="scattered amplitude relative to the direct arrival")
     confidence: dict[str, float | None] | None = Field(None, description="score in [0, 1], peak ratio, peak widths")
+    region: LocalizationRegion | None = Field(None, description="its 90 % localization region (null: stored "
+                                              "before regions were computed)")
 
 
 class SensorFault(BaseModel):

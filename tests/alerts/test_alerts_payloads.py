@@ -140,3 +140,16 @@ def test_an_optional_field_that_is_not_known_is_left_out_not_sent_as_null():
     assert blind.payload["reason"] == "25 degC from every baseline" and "reason" not in restored.payload
     assert restored.payload["links"] == {"node": "https://pipes.example.org/api/v1/nodes/n-1"}  # no measurement
     assert restored.payload["measurement_id"] is None and restored.payload["location"] is None  # these stay null
+
+
+def test_the_location_carries_the_estimates_90_percent_region_when_the_detection_has_one():
+    with_region = state_change_event(
+        SETTINGS, node_id="n-1", from_state="ok", to_state="suspected", measurement_id=41, peak_di=0.05,
+        threshold=0.03, axial_mm=150.2, angle_deg=45.0, occurred_at=T0,
+        region={"coverage": 0.9, "axial_half_mm": 400.0, "circumferential_half_mm": 180.0, "localized": False,
+                "reason": "a competing peak"})
+    assert with_region.payload["location"] == {"axial_mm": 150.2, "angle_deg": 45.0, "axial_half_mm": 400.0,
+                                               "circumferential_half_mm": 180.0, "localized": False}
+    jsonschema_rs.Draft202012Validator(payload_json_schema()).validate(with_region.payload)
+    without = every_kind_of_event()[0]
+    assert set(without.payload["location"]) == {"axial_mm", "angle_deg"}  # optional: left out, not null
