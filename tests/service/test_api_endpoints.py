@@ -256,6 +256,8 @@ def test_detections_latest_first_per_node_and_fleet_wide(viewer):
     assert flagged["method"] == "multipath" and flagged["sensor_faults"] == []
     strongest = flagged["defects"][0]
     assert strongest["di"] > flagged["threshold"] and strongest["severity"] > 0
+    region = strongest["region"]  # the gateway's 90 % localization region, stored with the defect
+    assert region["coverage"] == 0.9 and region["axial_half_mm"] > 0 and region["circumferential_half_mm"] > 0
     assert flagged["baseline_measurement_id"] is not None and abs(flagged["stretch"]) < 0.01
 
 
