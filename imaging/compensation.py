@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from imaging.arrivals import hann_burst, matched_filter
 from imaging.dimap import BaselineMismatch, check_compatible
 from imaging.measurement import Measurement
 
@@ -211,7 +212,16 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     stretched_residual = _relative_residual(target, moved[rows])
     # Stretch only when it explains a good part of the difference: a defect's echo right after
     # the direct arrival also "prefers" a tiny delay, and stretching it away would bias the map.
-    if stretched_residual > (1.0 - MIN_EXPLAINED) * plain_residual:
+    # Judged in the excitation's band: resampling at any fractional shift smooths the baseline's
+    # noise above the band, which "explains" residual energy a stretch never did (white noise up
+    # to Nyquist, no end echoes: a spurious 1e-4 accepted on most unchanged records).
+    burst = hann_burst(current.fs_hz, current.excitation_hz, current.cycles)
+    in_band = matched_filter(np.concatenate([target, plain[rows], moved[rows]]), burst)
+    n_rows = target.shape[0]
+    target_band = in_band[:n_rows]
+    plain_band = _relative_residual(target_band, in_band[n_rows:2 * n_rows])
+    stretched_band = _relative_residual(target_band, in_band[2 * n_rows:])
+    if not stretched_band <= (1.0 - MIN_EXPLAINED) * plain_band:
         return 0.0, plain_residual, baseline.traces
     return best, stretched_residual, moved.astype(np.float32)
 
