@@ -292,6 +292,34 @@ def _read_toml(path: Path) -> dict:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+class DeliverySettings(BaseSettings):
+    """What alert delivery alone needs (``pipesentry alerts deliver`` at a central site: no nodes to poll)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="PIPESENTRY_", env_nested_delimiter="__", extra="forbid", allow_inf_nan=False
+    )
+
+    database: DatabaseSettings = DatabaseSettings()
+    logging: LoggingSettings = LoggingSettings()
+    alerting: AlertingSettings = AlertingSettings()
+    shutdown_timeout_s: float = Field(5.0, gt=0, le=MAX_TIMEOUT_S)
+
+
+def load_delivery_settings(path: str | Path) -> GatewaySettings | DeliverySettings:
+    """A gateway config (it has ``[[nodes]]``: checked whole), or a delivery-only one (``[database]``,
+    ``[alerting]``, ``[logging]``, ``shutdown_timeout_s``); raise ConfigError naming every offending key."""
+    path = Path(path)
+    data = _read_toml(path)
+    if "nodes" in data:
+        return settings_from_mapping(data, source=str(path))
+    try:
+        return DeliverySettings(**data)
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: {_format_errors(exc)}") from None
+    except SettingsError as exc:
+        raise ConfigError(f"{path}: {_environment_error(exc)}") from None
+
+
 def load_settings(path: str | Path) -> GatewaySettings:
     """Read and validate the gateway config; raise ConfigError naming every offending key.
 

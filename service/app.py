@@ -18,7 +18,7 @@ from service.ingest import IngestGate
 from service.limits import BodySizeLimit, RequestsInFlightLimit
 from service.maps import HeatmapRenderer
 from service.metrics import metrics_registry
-from service.routes import alerts, detections, ingest, keys, measurements, nodes
+from service.routes import alerts, detections, fleet, ingest, keys, measurements, nodes
 from service.routes.api_docs import install_api_docs
 from service.routes.dashboard import STATIC_DIR, dashboard_router
 from service.routes.health import health_router
@@ -90,7 +90,8 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
     app.state.ingest_gate = IngestGate(settings.ingest_concurrency)
 
     problems.install_problem_handlers(app)
-    for router in (nodes.router, measurements.router, detections.router, alerts.router, keys.router, ingest.router):
+    for router in (nodes.router, fleet.router, measurements.router, detections.router, alerts.router, keys.router,
+                   ingest.router):
         app.include_router(router, prefix=settings.base_path)
     app.include_router(health_router(settings))
     app.include_router(dashboard_router(settings))

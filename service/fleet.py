@@ -7,7 +7,8 @@ from collections.abc import Sequence
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from db.models import BaselineRow, DetectionRow, NodeRow
+from db import fleet_queries
+from db.models import BaselineRow, DetectionRow, NodeRow, NodeState
 from db.nodes import decommission_node, get_node, list_nodes, recommission_node, update_node_details
 from service import schemas
 
@@ -29,6 +30,26 @@ def node_view(session: Session, node_id: str) -> schemas.Node:
         select(BaselineRow).where(BaselineRow.node_id == node_id, BaselineRow.active.is_(True))
     ).first()
     return _node_view(node, baseline, _latest_detections(session, [node])[0])
+
+
+def site_summaries(session: Session) -> list[schemas.SiteSummary]:
+    return [schemas.SiteSummary(site=s.site, gateways=s.gateways, nodes=s.nodes, flagged=s.flagged, offline=s.offline,
+                                by_state=s.by_state, last_seen_at=s.last_seen_at)
+            for s in fleet_queries.site_summaries(session)]
+
+
+def fleet_page(session: Session, *, site: str | None, gateway_id: str | None, states: Sequence[NodeState],
+               limit: int, cursor: str | None) -> schemas.FleetNodePage:
+    """A page of the fleet's nodes in service (five queries per page, whatever the fleet size)."""
+    nodes, next_cursor = fleet_queries.fleet_node_page(session, site=site, gateway_id=gateway_id, states=states,
+                                                        limit=limit, cursor=cursor)
+    ids = [n.node_id for n in nodes]
+    baselines = {b.node_id: b for b in session.scalars(
+        select(BaselineRow).where(BaselineRow.active.is_(True), BaselineRow.node_id.in_(ids)))} if ids else {}
+    since = fleet_queries.state_since(session, nodes)
+    items = [schemas.FleetNode(**_node_view(n, baselines.get(n.node_id), d).model_dump(), state_since=since.get(n.node_id))
+             for n, d in zip(nodes, _latest_detections(session, nodes), strict=True)]
+    return schemas.FleetNodePage(items=items, next_cursor=next_cursor)
 
 
 def _latest_detections(session: Session, nodes: Sequence[NodeRow]) -> list[DetectionRow | None]:
@@ -80,6 +101,8 @@ def _node_view(node: NodeRow, baseline: BaselineRow | None, detection: Detection
         latest_threshold=node.latest_threshold,
         active_baseline=None if baseline is None else schemas.Baseline.model_validate(baseline),
         latest_detection=None if detection is None else schemas.Detection.model_validate(detection),
+        site=node.site,
+        gateway_id=node.gateway_id,
     )
 
 

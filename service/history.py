@@ -8,7 +8,7 @@ from sqlalchemy.orm import Session
 
 from db.errors import NotFound
 from db.measurements import get_measurement
-from db.models import DetectionRow, MeasurementKind, MeasurementRow, NodeState
+from db.models import DetectionRow, MeasurementKind, MeasurementRow, NodeRow, NodeState
 from db.nodes import get_node
 from db.pagination import keyset_page
 from db.queries import detection_for, di_maps_for, latest_detection, measurements_page
@@ -74,9 +74,18 @@ def detection_list(
     end: datetime | None,
     limit: int,
     cursor: str | None,
+    site: str | None = None,
+    gateway_id: str | None = None,
 ) -> schemas.DetectionPage:
-    """Detections, latest first: one node's (``node_id``) or the whole fleet's."""
+    """Detections, latest first: one node's (``node_id``) or the whole fleet's (of one site or gateway)."""
     statement = select(DetectionRow)
+    if site is not None or gateway_id is not None:
+        nodes = select(NodeRow.node_id)
+        if site is not None:
+            nodes = nodes.where(NodeRow.site == site)
+        if gateway_id is not None:
+            nodes = nodes.where(NodeRow.gateway_id == gateway_id)
+        statement = statement.where(DetectionRow.node_id.in_(nodes))
     if node_id is not None:
         get_node(session, node_id)
         statement = statement.where(DetectionRow.node_id == node_id)

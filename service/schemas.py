@@ -4,7 +4,7 @@ from __future__ import annotations
 import uuid
 from datetime import datetime
 from enum import StrEnum
-from typing import Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -163,6 +163,27 @@ class Node(_Out):
     latest_threshold: float | None
     active_baseline: Baseline | None
     latest_detection: Detection | None
+    site: str | None = Field(None, description="central site: the site the node reports from (null: this gateway's own)")
+    gateway_id: str | None = Field(None, description="central site: the gateway that reports it (null: this one)")
+
+
+class FleetNode(Node):
+    state_since: datetime | None = Field(description="when the node entered its current state (null: never changed)")
+
+
+class FleetNodePage(BaseModel):
+    items: list[FleetNode]
+    next_cursor: str | None
+
+
+class SiteSummary(BaseModel):
+    site: str | None = Field(description="null: the nodes without a site (a gateway's own)")
+    gateways: list[str]
+    nodes: int = Field(description="nodes in service")
+    flagged: int = Field(description="nodes in damage or suspected")
+    offline: int
+    by_state: dict[str, int]
+    last_seen_at: datetime | None
 
 
 class DiMapSummary(_Out):
@@ -330,15 +351,20 @@ class ApiKeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=128, pattern=r"^[^\x00-\x1f\x7f]+$")
-    role: Role
-    site: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
-                             description="required for a gateway key, refused for any other")
+    role: Literal["viewer", "operator", "admin"]
 
-    @model_validator(mode="after")
-    def _site_for_gateway_keys(self) -> ApiKeyCreate:
-        if (self.role is Role.GATEWAY) != (self.site is not None):
-            raise ValueError("a gateway key needs its site, and only a gateway key has one")
-        return self
+
+class GatewayKeyCreate(BaseModel):
+    """A key for one gateway reporting to this central site: it may only ingest, for its site only."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=128, pattern=r"^[^\x00-\x1f\x7f]+$")
+    role: Literal["gateway"]
+    site: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", description="the only site it may write for")
+
+
+AnyKeyCreate = Annotated[ApiKeyCreate | GatewayKeyCreate, Field(discriminator="role")]
 
 
 class ApiKeyCreated(ApiKey):

@@ -12,10 +12,11 @@ pytest_plugins = [
     "tests.support.api_fixtures",
     "tests.support.mqtt_broker",
     "tests.support.browser_fixtures",
+    "tests.support.wheel_fixtures",
 ]
 
 # Fixtures that start the whole system (mock nodes, a gateway and an API server): a test using one is e2e.
-SYSTEM_FIXTURES = frozenset({"api", "fleet_db_path"})
+SYSTEM_FIXTURES = frozenset({"api", "fleet_db_path", "installed_wheel"})
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

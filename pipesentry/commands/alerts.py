@@ -21,7 +21,8 @@ alerts_app = typer.Typer(help="Alert delivery (the gateway runs it itself; see d
 
 @alerts_app.command("deliver")
 def deliver(
-    config: Annotated[Path, typer.Option(help="the gateway TOML config")],
+    config: Annotated[Path, typer.Option(help="the gateway TOML config, or a delivery-only one without [[nodes]] "
+                                               "(a central site: docs/deploy.md)")],
     no_watch: Annotated[
         bool, typer.Option("--no-watch", help="only deliver: raise no node_offline/node_online or baseline_changed events")
     ] = False,
@@ -34,11 +35,11 @@ def deliver(
     from alerts.delivery import AlertDelivery
     from db.database import open_database
     from db.errors import StorageError
-    from gateway.config import ConfigError, load_settings
+    from gateway.config import ConfigError, load_delivery_settings
     from gateway.logs import setup_logging
 
     try:
-        settings = load_settings(config)
+        settings = load_delivery_settings(config)
     except ConfigError as exc:
         fail(str(exc))
     try:

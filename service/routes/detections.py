@@ -22,7 +22,9 @@ def list_detections(
     end: End = None,
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,
+    site: Annotated[str | None, Query(min_length=1, max_length=64, description="only this site's nodes")] = None,
+    gateway_id: Annotated[str | None, Query(min_length=1, max_length=64, description="only this gateway's")] = None,
 ) -> schemas.DetectionPage:
     with database.session() as session:
         return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,
-                                      cursor=cursor)
+                                      cursor=cursor, site=site, gateway_id=gateway_id)

@@ -6,6 +6,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Path, status
 
 from db.api_keys import create_api_key, list_api_keys, revoke_api_key
+from db.models import Role
 from service import schemas
 from service.deps import Admin, DatabaseDep, VerifiedKeys, require_admin, verified_keys
 from service.problems import problem_responses
@@ -24,9 +25,10 @@ def list_keys(database: DatabaseDep) -> list[schemas.ApiKey]:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses=problem_responses(413))
-def create_key(body: schemas.ApiKeyCreate, _: Admin, database: DatabaseDep) -> schemas.ApiKeyCreated:
+def create_key(body: schemas.AnyKeyCreate, _: Admin, database: DatabaseDep) -> schemas.ApiKeyCreated:
+    site = body.site if isinstance(body, schemas.GatewayKeyCreate) else None
     with database.write() as session:
-        row, token = create_api_key(session, name=body.name, role=body.role, site=body.site)
+        row, token = create_api_key(session, name=body.name, role=Role(body.role), site=site)
         return schemas.ApiKeyCreated(**schemas.ApiKey.model_validate(row).model_dump(), token=token)
 
 

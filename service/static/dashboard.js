@@ -7,10 +7,14 @@ const API = document.querySelector('meta[name="pipesentry-api-base"]').content;
 const REFRESH_MS = 1000 * Number(document.querySelector('meta[name="pipesentry-refresh-s"]').content || "10");
 const KEY_STORAGE = "pipesentry.apiKey";
 const TREND_POINTS = 100;
+const PAGE_SIZE = 100; // table rows per page of /fleet/nodes
+const CARD_ALL_UP_TO = 24; // a fleet this small gets a card per node; a larger one only for its flagged ones
+const MAX_CARDS = 12; // ...of the page shown, at most this many (each card loads a trend and a map)
 const SVG_NS = "http://www.w3.org/2000/svg";
 
 const shownMaps = new Map(); // node_id -> measurement id whose heatmap is displayed
 let timer = null;
+const view = { site: "", state: "", cursor: null, cursors: [] }; // the page of nodes shown, and the way back
 
 class Unauthorized extends Error {}
 
@@ -56,6 +60,7 @@ function showKeyForm(message) {
   clearTimeout(timer);
   document.getElementById("key-form").hidden = false;
   document.getElementById("fleet").hidden = true;
+  document.getElementById("sites").hidden = true;
   document.getElementById("forget-key").hidden = true;
   document.getElementById("nodes").replaceChildren();
   shownMaps.clear();
@@ -65,10 +70,42 @@ function showKeyForm(message) {
   document.getElementById("status").textContent = "API key needed";
 }
 
+function siteName(site) { return site === null ? "this gateway" : site; }
+
+function renderSites(sites) {
+  const rows = sites.map((s) => {
+    const row = el("tr", { "data-site": s.site === null ? "" : s.site, class: s.flagged ? "flagged" : "" },
+      el("td", {}, siteName(s.site)),
+      el("td", {}, s.gateways.join(", ") || "–"),
+      el("td", {}, String(s.nodes)),
+      el("td", {}, `${s.by_state.damage || 0} / ${s.by_state.suspected || 0}`),
+      el("td", s.offline ? { class: "offline" } : {}, String(s.offline)),
+      el("td", {}, when(s.last_seen_at)));
+    if (s.site !== null) row.addEventListener("click", () => { setFilter("site", s.site); });
+    return row;
+  });
+  document.querySelector("#sites-table tbody").replaceChildren(...rows);
+  document.getElementById("sites").hidden = false;
+  const select = document.getElementById("site-filter");
+  const named = sites.filter((s) => s.site !== null).map((s) => s.site).sort();
+  select.replaceChildren(el("option", { value: "" }, "all sites"), ...named.map((name) => el("option", { value: name }, name)));
+  select.value = view.site;
+}
+
+function setFilter(which, value) {
+  view[which] = value;
+  view.cursor = null;
+  view.cursors = [];
+  document.getElementById(which + "-filter").value = value;
+  refresh();
+}
+
 function renderFleet(nodes) {
   const rows = nodes.map((n) => el("tr", { "data-node": n.node_id },
     el("td", { title: n.details.location || "" }, n.details.label ? `${n.details.label} (${n.node_id})` : n.node_id),
+    el("td", {}, n.site === null ? "–" : `${n.site} / ${n.gateway_id}`),
     el("td", {}, stateBadge(n.state)),
+    el("td", {}, when(n.state_since)),
     el("td", n.health.online ? {} : { class: "offline" }, n.health.online ? "yes" : "offline"),
     el("td", {}, when(n.health.last_seen_at)),
     el("td", {}, `${fmt(n.latest_di_peak)} / ${fmt(n.latest_threshold)}`),
@@ -245,27 +282,45 @@ async function refresh() {
   clearTimeout(timer);
   const status = document.getElementById("status");
   try {
-    const nodes = await api("/nodes");
+    // The site summary first (one query, whatever the fleet size), then one page of nodes.
+    const sites = await api("/fleet/sites");
+    const query = new URLSearchParams({ limit: String(PAGE_SIZE) });
+    if (view.site) query.set("site", view.site);
+    if (view.state) query.set("state", view.state);
+    if (view.cursor) query.set("cursor", view.cursor);
+    const page = await api(`/fleet/nodes?${query}`);
+    const nodes = page.items;
     document.getElementById("key-form").hidden = true;
     document.getElementById("fleet").hidden = false;
     document.getElementById("forget-key").hidden = false;
+    renderSites(sites);
     renderFleet(nodes);
-    const listed = new Set(nodes.map((n) => n.node_id));
-    for (const stale of document.querySelectorAll(".node-card")) {  // decommissioned meanwhile
+    view.next = page.next_cursor;
+    document.getElementById("next-page").hidden = !page.next_cursor;
+    document.getElementById("first-page").hidden = view.cursors.length === 0;
+    document.getElementById("page-info").textContent =
+      `page ${view.cursors.length + 1}: ${nodes.length} node(s)${page.next_cursor ? ", more on the next" : ""}`;
+    const total = sites.reduce((sum, s) => sum + s.nodes, 0);
+    const flagged = (n) => n.state === "damage" || n.state === "suspected";
+    const carded = total <= CARD_ALL_UP_TO ? nodes : nodes.filter(flagged).slice(0, MAX_CARDS);
+    const listed = new Set(carded.map((n) => n.node_id));
+    for (const stale of document.querySelectorAll(".node-card")) {  // decommissioned or filtered out meanwhile
       if (!listed.has(stale.dataset.node)) { stale.remove(); shownMaps.delete(stale.dataset.node); }
     }
     // One node's failure (a map gone missing, a pruned record) must not blank the others.
-    const outcomes = await Promise.allSettled(nodes.map(renderNode));
+    const outcomes = await Promise.allSettled(carded.map(renderNode));
     outcomes.forEach((outcome, i) => {
       if (outcome.status === "rejected") {
         if (outcome.reason instanceof Unauthorized) throw outcome.reason;
-        const notice = card(nodes[i].node_id).querySelector(".notice");
+        const notice = card(carded[i].node_id).querySelector(".notice");
         notice.textContent = `Could not load this node's details: ${outcome.reason.message}`;
         notice.hidden = false;
       }
     });
-    const damaged = nodes.filter((n) => n.state === "damage").length;
-    status.textContent = `${nodes.length} node(s), ${damaged} damaged · updated ${new Date().toLocaleTimeString()}`;
+    const damaged = sites.reduce((sum, s) => sum + (s.by_state.damage || 0), 0);
+    const named = sites.filter((s) => s.site !== null).length;
+    status.textContent = `${total} node(s)${named ? ` at ${named} site(s)` : ""}, ${damaged} damaged · ` +
+      `updated ${new Date().toLocaleTimeString()}`;
   } catch (error) {
     if (error instanceof Unauthorized) {
       localStorage.removeItem(KEY_STORAGE);
@@ -283,6 +338,18 @@ function start() {
     event.preventDefault();
     localStorage.setItem(KEY_STORAGE, document.getElementById("key-input").value.trim());
     document.getElementById("key-input").value = "";
+    refresh();
+  });
+  document.getElementById("site-filter").addEventListener("change", (event) => setFilter("site", event.target.value));
+  document.getElementById("state-filter").addEventListener("change", (event) => setFilter("state", event.target.value));
+  document.getElementById("next-page").addEventListener("click", () => {
+    view.cursors.push(view.cursor);
+    view.cursor = view.next;
+    refresh();
+  });
+  document.getElementById("first-page").addEventListener("click", () => {
+    view.cursor = null;
+    view.cursors = [];
     refresh();
   });
   document.getElementById("forget-key").addEventListener("click", () => {

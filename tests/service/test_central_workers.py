@@ -1,4 +1,5 @@
-"""Central mode: `pipesentry api --workers 2` on PostgreSQL, with keys made by the installed CLI.
+"""Central mode: docker/compose.yaml's API command, run from the installed wheel with 2 workers on
+PostgreSQL, with keys made by the CLI.
 
 The processes share nothing but the database: a key revoked from outside them (the CLI) stops on
 every worker within the key cache's stated TTL, and a gateway key made with `--role gateway --site`
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+import yaml
 
 from db.api_keys import create_api_key
 from db.database import open_database
@@ -23,11 +25,13 @@ from db.models import Role
 from tests.support.api_fixtures import free_port
 from tests.support.ingest_batches import batch_of, node_history
 from tests.support.process_harness import Proc, wait_until
+from tests.support.wheel_fixtures import REPO
 from uplink.contract import INGEST_PATH
 
 pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.timeout(120)]
 
 BIN = Path(sys.executable).parent
+COMPOSE = REPO / "docker" / "compose.yaml"
 TTL_S = 2.0
 REQUESTS = 20  # each on a new connection, so the kernel hands them to both workers
 
@@ -53,7 +57,16 @@ def statuses(url: str, token: str) -> list[int]:
             for _ in range(REQUESTS)]
 
 
-def test_two_workers_on_postgresql_share_keys_and_a_revoked_key_stops_within_the_ttl(postgres_url: str, tmp_path):
+def compose_api_command(workers: int) -> list[str]:
+    """The compose file's API command (after the image's entry point), with ``workers`` workers."""
+    command = list(yaml.safe_load(COMPOSE.read_text())["services"]["api"]["command"])
+    command[command.index("--workers") + 1] = str(workers)
+    return ["pipesentry", *command]
+
+
+def test_two_workers_on_postgresql_share_keys_and_a_revoked_key_stops_within_the_ttl(
+    postgres_url: str, tmp_path, installed_wheel: Path
+):
     database = open_database(postgres_url)  # the central site's schema, as `python -m db upgrade` makes it
     with database.write() as session:
         viewer_row, viewer = create_api_key(session, name="ops-screen", role=Role.VIEWER)
@@ -63,9 +76,10 @@ def test_two_workers_on_postgresql_share_keys_and_a_revoked_key_stops_within_the
                            url=postgres_url))
 
     port = free_port()
-    server = Proc([str(BIN / "pipesentry"), "api", "--workers", "2", "--database-url", postgres_url,
-                   "--port", str(port), "--log-level", "warning"], tmp_path, "api",
-                  env={"PIPESENTRY_API_KEY_CACHE_TTL_S": str(TTL_S)})
+    program, *arguments = compose_api_command(workers=2)
+    server = Proc([str(installed_wheel / "bin" / program), *arguments, "--port", str(port), "--log-level", "warning"],
+                  tmp_path, "api", env={"PIPESENTRY_API_KEY_CACHE_TTL_S": str(TTL_S),
+                                        "PIPESENTRY_API_DATABASE_URL": postgres_url})
     base = f"http://127.0.0.1:{port}"
     try:
         def ready() -> bool:

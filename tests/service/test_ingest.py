@@ -9,19 +9,15 @@ import gzip
 import json
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
 from datetime import timedelta
 
 import httpx
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import select
 
-from db.api_keys import create_api_key
-from db.database import Database, open_database
-from db.models import DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow, Role
-from service.settings import ApiSettings
-from tests.support.api_fixtures import ApiServer, assert_problem
+from db.models import DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow
+from tests.support.api_fixtures import assert_problem
+from tests.support.central_site import Centre, serve_centre
 from tests.support.db_fixtures import T0
 from tests.support.ingest_batches import (
     alert_record,
@@ -32,47 +28,11 @@ from tests.support.ingest_batches import (
     node_record,
     state_change_record,
 )
-from uplink.contract import INGEST_PATH, IngestBatch
-
-SINKS = ["webhook-central"]
-
-
-@dataclass
-class Centre:
-    url: str
-    database: Database
-    north: str  # gateway key of site north
-    south: str  # gateway key of site south
-    viewer: str
-    server: ApiServer
-
-    def post(self, batch: IngestBatch | bytes, key: str, **headers: str) -> httpx.Response:
-        body = batch if isinstance(batch, bytes) else batch.model_dump_json().encode()
-        return httpx.post(f"{self.url}{INGEST_PATH}", content=body, timeout=30,
-                          headers={"Authorization": f"Bearer {key}", "Content-Type": "application/json", **headers})
-
-    def count(self, model: type) -> int:
-        with self.database.session() as session:
-            return session.scalar(select(func.count()).select_from(model)) or 0
-
-
-@contextmanager
-def _serve(db_url: str, **settings: object) -> Iterator[Centre]:
-    database = open_database(db_url)
-    with database.write() as session:
-        north = create_api_key(session, name="gw-north-1", role=Role.GATEWAY, site="north")[1]
-        south = create_api_key(session, name="gw-south-1", role=Role.GATEWAY, site="south")[1]
-        viewer = create_api_key(session, name="viewer", role=Role.VIEWER)[1]
-    try:
-        with ApiServer(ApiSettings(database_url=db_url, central_alert_sinks=SINKS, **settings)) as server:
-            yield Centre(server.base_url, database, north, south, viewer, server)
-    finally:
-        database.dispose()
 
 
 @pytest.fixture
 def centre(sqlite_url: str) -> Iterator[Centre]:
-    with _serve(sqlite_url) as serving:
+    with serve_centre(sqlite_url) as serving:
         yield serving
 
 
@@ -179,7 +139,7 @@ def test_a_node_record_older_than_the_centres_view_is_ignored(centre: Centre):
 
 
 def test_gzip_bodies_are_accepted_and_the_limit_holds_after_inflating(sqlite_url: str):
-    with _serve(sqlite_url, ingest_max_body_bytes=200_000) as centre:
+    with serve_centre(sqlite_url, ingest_max_body_bytes=200_000) as centre:
         small = batch_of("gw-n1", "north", node_history("gw-n1", "pipe-1", 1, 1))
         zipped = gzip.compress(small.model_dump_json().encode())
         assert centre.post(zipped, centre.north, **{"Content-Encoding": "gzip"}).status_code == 200
@@ -207,7 +167,7 @@ def test_alert_events_get_central_deliveries_only_when_the_gateway_leaves_them_t
 
 
 def test_a_busy_worker_answers_429_with_retry_after(sqlite_url: str):
-    with _serve(sqlite_url, ingest_concurrency=1, ingest_retry_after_s=7) as centre:
+    with serve_centre(sqlite_url, ingest_concurrency=1, ingest_retry_after_s=7) as centre:
         gate = centre.server.server.config.app.state.ingest_gate
         gate.active = 1  # one batch is being stored by this worker
         busy = centre.post(batch_of("gw-n1", "north", [node_record("gw-n1", "pipe-1")]), centre.north)
@@ -219,7 +179,7 @@ def test_a_busy_worker_answers_429_with_retry_after(sqlite_url: str):
 
 @pytest.mark.postgres
 def test_the_same_batch_from_two_workers_at_once_is_stored_once(postgres_url: str):
-    with _serve(postgres_url) as centre:
+    with serve_centre(postgres_url) as centre:
         batch = batch_of("gw-n1", "north", node_history("gw-n1", "pipe-1", 1, 20))
         answers: list[httpx.Response] = []
 

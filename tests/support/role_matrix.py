@@ -26,6 +26,8 @@ REQUIRED_ROLE = {
     ("get", "/api/v1/measurements/{measurement_id}/di-maps/{source}"): "viewer",
     ("get", "/api/v1/measurements/{measurement_id}/di-maps/{source}.png"): "viewer",
     ("get", "/api/v1/detections"): "viewer",
+    ("get", "/api/v1/fleet/sites"): "viewer",
+    ("get", "/api/v1/fleet/nodes"): "viewer",
     ("get", "/api/v1/alerts"): "viewer",
     ("get", "/api/v1/alerts/{alert_id}"): "viewer",
     ("post", "/api/v1/alerts/{alert_id}/acknowledge"): "operator",
