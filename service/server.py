@@ -81,5 +81,4 @@ def serve_workers(config: uvicorn.Config) -> None:
     """Serve ``config`` (``workers`` above 1) with uvicorn's supervisor: the workers share one socket."""
     from uvicorn.supervisors import Multiprocess
 
-    server = uvicorn.Server(config)
-    Multiprocess(config, target=server.run, sockets=[config.bind_socket()]).run()
+    Multiprocess(config, sockets=[config.bind_socket()]).run()

@@ -7,7 +7,7 @@ from db.models import NodeState
 from service import history, schemas
 from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
-from service.routes.parameters import DEFAULT_LIMIT, Cursor, End, Limit, NodeIdFilter, Start
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, End, GatewayFilter, Limit, NodeIdFilter, SiteFilter, Start
 
 router = APIRouter(prefix="/detections", tags=["detections"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))
@@ -22,8 +22,8 @@ def list_detections(
     end: End = None,
     limit: Limit = DEFAULT_LIMIT,
     cursor: Cursor = None,
-    site: Annotated[str | None, Query(min_length=1, max_length=64, description="only this site's nodes")] = None,
-    gateway_id: Annotated[str | None, Query(min_length=1, max_length=64, description="only this gateway's")] = None,
+    site: SiteFilter = None,
+    gateway_id: GatewayFilter = None,
 ) -> schemas.DetectionPage:
     with database.session() as session:
         return history.detection_list(session, node_id=node_id, state=state, start=start, end=end, limit=limit,

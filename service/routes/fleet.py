@@ -9,13 +9,10 @@ from db.models import NodeState
 from service import fleet, schemas
 from service.deps import DatabaseDep, require_viewer
 from service.problems import problem_responses
-from service.routes.parameters import DEFAULT_LIMIT, Cursor, Limit
+from service.routes.parameters import DEFAULT_LIMIT, Cursor, GatewayFilter, Limit, SiteFilter
 
 router = APIRouter(prefix="/fleet", tags=["fleet"], dependencies=[Depends(require_viewer)],
                    responses=problem_responses(401, 403, 503))
-
-SiteFilter = Annotated[str | None, Query(min_length=1, max_length=64, description="only this site's nodes")]
-GatewayFilter = Annotated[str | None, Query(min_length=1, max_length=64, description="only this gateway's nodes")]
 
 
 @router.get("/sites", summary="One summary per site: gateways, nodes in service, flagged, offline, by state")

@@ -40,5 +40,9 @@ NodeId = Annotated[str, Path(min_length=1, max_length=64, pattern=NODE_ID_PATTER
 NodeIdFilter = Annotated[
     str | None, Query(min_length=1, max_length=64, pattern=NODE_ID_PATTERN, description="only this node's")
 ]
+# A site's and a gateway's names as the uplink contract allows them (uplink/contract.py).
+SITE_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+SiteFilter = Annotated[str | None, Query(pattern=SITE_NAME_PATTERN, description="only this site's nodes")]
+GatewayFilter = Annotated[str | None, Query(pattern=SITE_NAME_PATTERN, description="only this gateway's nodes")]
 MeasurementId = Annotated[int, Path(ge=1, le=MAX_ID, description="the measurement's id")]
 BaselineId = Annotated[int, Path(ge=1, le=MAX_ID, description="the baseline record's id")]
