@@ -5,12 +5,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from db.baselines import set_active_baseline
 from db.measurements import add_event_once, store_measurement
+from db.models import BaselineRow, DetectionRow, MeasurementRow, StateChangeRow, UplinkKind
 from db.nodes import record_node_health
 from db.records import CycleRecord, EventInput
+from db.uplink_queue import QueuePolicy, enqueue, enqueue_node, queue_policy, traces_go_up
 
 # The outbox events a stored measurement causes, built once its id is known (event ids derive from it).
 EventsFor = Callable[[int], Sequence[EventInput]]
@@ -30,7 +33,8 @@ def store_cycle(
     clock's time (the rows' created_at, the node's last_seen_at; default the wall clock).
 
     The measurement, its maps, verdict and state change, the baseline it may become, its
-    outbox events and the node's health are committed together or (on any error) not at all.
+    outbox events, their uplink records (when the session queues for an uplink) and the node's
+    health are committed together or (on any error) not at all.
     """
     acquisition = record.acquisition
     row = store_measurement(
@@ -55,10 +59,37 @@ def store_cycle(
         state_change=record.state_change,
         now=now,
     )
+    baseline = None
     if record.activate_baseline is not None:
-        set_active_baseline(session, node_id, row.id, created_by="gateway", reason=record.activate_baseline)
+        baseline = set_active_baseline(session, node_id, row.id, created_by="gateway", reason=record.activate_baseline)
+    policy = queue_policy(session)
+    if policy is not None:  # before the events: a node's records go up in the order they happened
+        _queue_cycle(session, policy, node_id, row, record, baseline)
     events = tuple(
         event for event in (events_for(row.id) if events_for else ()) if add_event_once(session, event, node_id=node_id)
     )
     record_node_health(session, node_id, online=True, error_counters=record.error_counters, seen_at=now)
     return StoredCycle(row.id, events)
+
+
+def _queue_cycle(
+    session: Session, policy: QueuePolicy, node_id: str, row: MeasurementRow, record: CycleRecord,
+    baseline: BaselineRow | None,
+) -> None:
+    """The cycle's uplink records: the measurement (with its maps), then its detection, state change, baseline."""
+    enqueue_node(session, node_id)  # a node whose identity was never queued (its database predates the uplink)
+    detection, state_change = record.detection, record.state_change
+    with_traces = traces_go_up(
+        policy, kind=record.kind, detection_state=detection.state if detection else None,
+        peak_di=detection.peak_di if detection else None, threshold=detection.threshold if detection else None,
+        to_state=state_change.to_state if state_change else None, becomes_baseline=baseline is not None,
+    )
+    enqueue(session, UplinkKind.MEASUREMENT, row.id, node_id=node_id, measurement_id=row.id, with_traces=with_traces)
+    if detection is not None:
+        detection_id = session.scalar(select(DetectionRow.id).where(DetectionRow.measurement_id == row.id))
+        enqueue(session, UplinkKind.DETECTION, detection_id or row.id, node_id=node_id, measurement_id=row.id)
+    if state_change is not None:
+        change_id = session.scalar(select(StateChangeRow.id).where(StateChangeRow.measurement_id == row.id))
+        enqueue(session, UplinkKind.STATE_CHANGE, change_id or row.id, node_id=node_id, measurement_id=row.id)
+    if baseline is not None:
+        enqueue(session, UplinkKind.BASELINE, baseline.id, node_id=node_id, measurement_id=row.id)

@@ -29,6 +29,7 @@ from db.errors import (
 )
 
 log = logging.getLogger("pipesentry.storage")
+from db.uplink_queue import QUEUE_POLICY, QueuePolicy
 
 SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
 SQLITE_POOL_OVERFLOW = 32
@@ -149,6 +150,11 @@ class Database:
             log.debug("WAL checkpoint after a full disk did not complete: %s", error)
             return False
         return not busy
+
+    def queue_uplink(self, policy: QueuePolicy) -> None:
+        """From now on every write of this handle also queues what it stores for the uplink
+        (``db.uplink_queue``); the gateway calls it when ``[uplink]`` is configured."""
+        self._writers.configure(info={QUEUE_POLICY: policy})
 
     def schema_revision(self) -> str | None:
         """The Alembic revision the database is at (None if it has no schema)."""

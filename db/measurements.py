@@ -19,9 +19,11 @@ from db.models import (
     MeasurementKind,
     MeasurementRow,
     StateChangeRow,
+    UplinkKind,
 )
 from db.nodes import get_node
 from db.records import DetectionInput, DiMapInput, EventInput, StateChangeInput
+from db.uplink_queue import enqueue, queue_policy
 
 
 def store_measurement(
@@ -154,7 +156,8 @@ def _di_map_row(measurement_id: int, di_map: DiMapInput, now: datetime) -> DiMap
 
 
 def add_event(session: Session, event: EventInput, *, node_id: str | None, now: datetime | None = None) -> EventRow:
-    """Put an alert in the outbox with one pending delivery per sink (same transaction)."""
+    """Put an alert in the outbox with one pending delivery per sink (same transaction), and in
+    the uplink queue when the session queues for one."""
     now = now or utc_now()
     row = EventRow(
         id=event.id,
@@ -176,6 +179,8 @@ def add_event(session: Session, event: EventInput, *, node_id: str | None, now: 
         for sink in event.sinks
     ]
     session.add(row)
+    if queue_policy(session) is not None:
+        enqueue(session, UplinkKind.ALERT_EVENT, event.id.hex, node_id=node_id, now=now)
     return row
 
 

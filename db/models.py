@@ -72,6 +72,23 @@ class DeliveryStatus(StrEnum):
     DEAD = "dead"
 
 
+class UplinkKind(StrEnum):
+    """What a record of the uplink queue replicates (the wire contract's record kinds)."""
+
+    NODE = "node"
+    MEASUREMENT = "measurement"
+    BASELINE = "baseline"
+    DETECTION = "detection"
+    STATE_CHANGE = "state_change"
+    ALERT_EVENT = "alert_event"
+
+
+class UplinkStatus(StrEnum):
+    PENDING = "pending"  # not yet acknowledged by the centre
+    SENT = "sent"  # the centre acknowledged it (accepted, or already held it)
+    REFUSED = "refused"  # the centre refused it as malformed: kept here, never retried on its own
+
+
 class Role(StrEnum):
     VIEWER = "viewer"
     OPERATOR = "operator"
@@ -357,3 +374,30 @@ class IngestedRecordRow(Base):
     central_id: Mapped[str] = mapped_column(String(64))  # the row's id here (a measurement's, an event's, ...)
     batch_id: Mapped[uuid.UUID] = mapped_column(Uuid)
     stored_at: Mapped[datetime]
+
+
+class UplinkRow(Base):
+    """The uplink queue: one record to replicate to the central PipeSentry (revision 0008).
+
+    Written in the same transaction as the fact it replicates (``db.uplink_queue``), sent in
+    ``id`` order per node, marked ``sent`` once the centre acknowledged it. Retention keeps the
+    raw traces of a measurement while a record that is to carry them is not sent.
+    """
+
+    __tablename__ = "uplink_queue"
+    __table_args__ = (
+        Index("ix_uplink_queue_status_node", "status", "node_id", "id"),
+        Index("ix_uplink_queue_measurement", "measurement_id"),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    kind: Mapped[UplinkKind] = mapped_column(_enum(UplinkKind, "uplink_kind"))
+    node_id: Mapped[str | None] = mapped_column(ForeignKey("nodes.node_id"))  # None: a gateway-wide alert event
+    ref: Mapped[str] = mapped_column(String(64))  # the local id of the replicated row (the uid's last part)
+    measurement_id: Mapped[int | None] = mapped_column(BigId, ForeignKey("measurements.id"))
+    with_traces: Mapped[bool] = mapped_column(Boolean, server_default=false())  # a measurement sent with its traces
+    created_at: Mapped[datetime]
+    status: Mapped[UplinkStatus] = mapped_column(_enum(UplinkStatus, "uplink_status"))
+    sent_at: Mapped[datetime | None]
+    refusals: Mapped[int] = mapped_column(Integer, server_default="0")
+    last_error: Mapped[str | None] = mapped_column(Text)

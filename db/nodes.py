@@ -12,6 +12,7 @@ from db.clock import utc_now
 from db.errors import NotFound, StateConflict
 from db.models import NodeRow, NodeState
 from db.records import NodeInfo
+from db.uplink_queue import enqueue_node, queue_policy
 
 
 def get_node(session: Session, node_id: str) -> NodeRow:
@@ -96,7 +97,7 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
     """Create the node or refresh its configuration from a new INFO reply; marks it online.
 
     State, DI results and error counters of a known node are kept: a reboot does not make
-    a damaged pipe healthy.
+    a damaged pipe healthy. A session that queues for the uplink queues the node's record.
     """
     seen_at = seen_at or utc_now()
     node = session.get(NodeRow, info.node_id)
@@ -117,6 +118,8 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
     node.last_seen_at = seen_at
     node.online = True
     session.flush()
+    if queue_policy(session) is not None:
+        enqueue_node(session, info.node_id, now=seen_at)
     return node
 
 

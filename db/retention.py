@@ -3,7 +3,9 @@
 Measurement rows, DI maps, detections and state changes stay forever; only
 ``measurements.traces_blob`` is cleared (with ``traces_pruned_at`` set). A measurement that
 is, was, or was recorded as a baseline is never pruned: every stored DI map must remain
-reproducible from its baseline's traces.
+reproducible from its baseline's traces. Nor is a measurement whose traces an uplink record
+still has to carry to the central PipeSentry (``db.uplink_queue``): they are pruned once the
+centre has them.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from sqlalchemy.orm import Session
 from db.clock import utc_now
 from db.errors import translate_db_error
 from db.models import BaselineRow, MeasurementKind, MeasurementRow
+from db.uplink_queue import unsent_traces
 
 SessionFactory = Callable[[], AbstractContextManager[Session]]
 DEFAULT_MAX_BATCHES = 10_000
@@ -60,6 +63,7 @@ def prune_traces(
                     MeasurementRow.traces_pruned_at.is_(None),
                     MeasurementRow.kind != MeasurementKind.BASELINE,
                     MeasurementRow.id.not_in(ever_baseline),
+                    MeasurementRow.id.not_in(unsent_traces()),
                 )
                 .order_by(MeasurementRow.acquired_at, MeasurementRow.id)
                 .limit(batch_size)

@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, SettingsError
 
 from alerts.config import AlertingSettings
@@ -75,6 +75,60 @@ class MetricsSettings(_Section):
     enabled: bool = True
     host: str = Field("127.0.0.1", min_length=1, description="listen address; 0.0.0.0 to be scraped from elsewhere")
     port: int = Field(9646, ge=0, le=65535, description="0: any free port (the log says which)")
+
+
+class UplinkSettings(_Section):
+    """Store-and-forward to a central PipeSentry (docs/gateway.md, "Uplink"): off unless ``[uplink]`` is set."""
+
+    url: str = Field(pattern=r"^https?://[^/?#\s]+", description="the central API's base URL, e.g. https://central.example")
+    key: SecretStr | None = Field(None, description="the gateway's API key (role gateway); or key_file")
+    key_file: Path | None = Field(None, description="a file holding the key (first line), readable by the gateway")
+    gateway_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
+                            description="this gateway's name at the centre: the first part of every record's uid")
+    site: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
+                      description="the site its key may write")
+    send: Literal["everything", "flagged_traces"] = Field(
+        "everything", description="flagged_traces: every record, but raw traces only of flagged measurements, "
+        "baselines and on demand")
+    batch_records: int = Field(50, ge=1, le=1000, description="records per batch at most")
+    batch_bytes: int = Field(4_000_000, ge=10_000, le=64_000_000,
+                             description="request body (before gzip) per batch at most; a bigger record goes alone")
+    timeout_s: float = Field(30.0, gt=0, le=MAX_TIMEOUT_S, description="one request: connect, send, answer")
+    idle_s: float = Field(2.0, gt=0, le=3600, description="how often an empty queue is looked at")
+    backoff_base_s: float = Field(1.0, gt=0, le=3600, description="first wait after a failed batch (full jitter)")
+    backoff_cap_s: float = Field(300.0, gt=0, le=DAY_S, description="no wait is longer (unless Retry-After says so)")
+    retry_after_max_s: float = Field(3600.0, gt=0, le=DAY_S, description="the centre's Retry-After honoured up to this")
+    refusals_max: int = Field(3, ge=1, le=100,
+                              description="a record the centre refuses this often is set aside (kept, not sent)")
+    ready_lag_s: float = Field(3600.0, gt=0, le=MAX_INTERVAL_S,
+                               description="readiness fails while the oldest unsent record is older than this")
+
+    @model_validator(mode="after")
+    def _one_key(self) -> UplinkSettings:
+        if (self.key is None) == (self.key_file is None):
+            raise ValueError("set exactly one of 'key' and 'key_file'")
+        if self.key is not None and not self.key.get_secret_value().strip():
+            raise ValueError("key is empty")
+        if self.key_file is not None:
+            self.read_key()  # --check finds an unreadable or empty key file, not the first upload
+        if self.backoff_cap_s < self.backoff_base_s:
+            raise ValueError(f"backoff_cap_s ({self.backoff_cap_s}) is below backoff_base_s ({self.backoff_base_s})")
+        return self
+
+    def read_key(self) -> str:
+        """The key: ``key``, or the first line of ``key_file``; ValueError naming the file otherwise."""
+        if self.key is not None:
+            return self.key.get_secret_value().strip()
+        assert self.key_file is not None
+        try:
+            text = self.key_file.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise ValueError(f"key_file {self.key_file}: cannot read it ({reason})") from None
+        key = text.strip().partition("\n")[0].strip()
+        if not key:
+            raise ValueError(f"key_file {self.key_file}: is empty")
+        return key
 
 
 class ThresholdSettings(_Section):
@@ -225,6 +279,7 @@ class GatewaySettings(BaseSettings):
     logging: LoggingSettings = LoggingSettings()
     metrics: MetricsSettings = MetricsSettings()
     alerting: AlertingSettings = AlertingSettings()  # [alerting] and [[alerting.sinks]], see docs/alerting.md
+    uplink: UplinkSettings | None = None  # [uplink]: store-and-forward to a central PipeSentry
     reopen_backoff_max_s: float = Field(
         60.0, gt=0, le=DAY_S, description="cap of the exponential backoff to reopen a port"
     )

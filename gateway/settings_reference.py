@@ -140,7 +140,8 @@ def _kind(annotation: object) -> str:
         return f"list of {_kind(args[0])}s" if args else "list"
     if origin is dict:
         return f"table of {_kind(args[1])} values" if args else "table"
-    names = {bool: "`true` \\| `false`", int: "integer", float: "number", str: "text", SecretStr: "text (secret)"}
+    names = {bool: "`true` \\| `false`", int: "integer", float: "number", str: "text", SecretStr: "text (secret)",
+             Path: "file path"}
     if isinstance(annotation, type) and hasattr(annotation, "__members__"):  # an Enum
         return " \\| ".join(f'`"{m.value}"`' for m in annotation.__members__.values())
     return names.get(annotation, getattr(annotation, "__name__", str(annotation)))  # type: ignore[call-overload]

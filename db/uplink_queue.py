@@ -1,0 +1,238 @@
+"""The uplink queue: what a gateway still has to replicate to the central PipeSentry.
+
+The same outbox discipline as alert delivery: a record is queued in the transaction that
+writes the fact it replicates (``store_cycle`` for a measurement and everything decided about
+it, ``upsert_node`` for a node's identity, ``add_event`` for an alert event), so a fact is
+either stored and queued or neither. It is marked ``sent`` only after the centre acknowledged
+it, so a crash at any point re-sends (the centre de-duplicates by the record's uid) and never
+loses anything.
+
+Queueing is switched on per database handle (:meth:`db.database.Database.queue_uplink`, which
+the gateway calls when ``[uplink]`` is configured): a gateway without an uplink writes no
+queue. What a record carries is decided here (:func:`traces_go_up`, pure); what it looks like
+on the wire is the sender's business (``gateway/uplink``).
+
+Order and fairness (:func:`next_batch`): each node's records go in ``id`` order (the order they
+were written); a batch takes an equal share from every node with something pending, starting
+after the node the previous batch started with, so one node's backlog never starves another
+node's live records.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, Literal, cast
+
+from sqlalchemy import CursorResult, Result, case, func, select, update
+from sqlalchemy.orm import Session
+
+from db.clock import utc_now
+from db.models import MeasurementKind, NodeState, UplinkKind, UplinkRow, UplinkStatus
+
+QUEUE_POLICY = "pipesentry.uplink_queue"  # key of Session.info: the QueuePolicy of sessions that queue
+FLAGGED_STATES = frozenset({NodeState.SUSPECTED, NodeState.DAMAGE})
+NO_NODE = ""  # the group of gateway-wide alert events (node_id NULL)
+
+Send = Literal["everything", "flagged_traces"]
+
+
+@dataclass(frozen=True)
+class QueuePolicy:
+    """What the gateway replicates: ``everything`` (every measurement with its traces) or
+    ``flagged_traces`` (every record, but a measurement's traces only when it was flagged,
+    is a baseline, or is asked for on demand)."""
+
+    send: Send = "everything"
+
+
+def queue_policy(session: Session) -> QueuePolicy | None:
+    """The policy of a session that queues for the uplink; None when it does not queue."""
+    policy = session.info.get(QUEUE_POLICY)
+    return policy if isinstance(policy, QueuePolicy) else None
+
+
+def traces_go_up(
+    policy: QueuePolicy,
+    *,
+    kind: MeasurementKind,
+    detection_state: NodeState | None,
+    peak_di: float | None,
+    threshold: float | None,
+    to_state: NodeState | None,
+    becomes_baseline: bool,
+) -> bool:
+    """Whether a measurement's record carries its raw traces (pure).
+
+    Under ``flagged_traces``: a measurement flagged (its DI peak at or above the threshold, or
+    its node suspected or damaged by it), and a baseline (a flagged map cannot be reproduced at
+    the centre without the traces it was computed against).
+    """
+    if policy.send == "everything":
+        return True
+    if kind == MeasurementKind.BASELINE or becomes_baseline:
+        return True
+    if peak_di is not None and threshold is not None and peak_di >= threshold:
+        return True
+    return detection_state in FLAGGED_STATES or to_state in FLAGGED_STATES
+
+
+def enqueue(
+    session: Session,
+    kind: UplinkKind,
+    ref: str | int,
+    *,
+    node_id: str | None,
+    measurement_id: int | None = None,
+    with_traces: bool = False,
+    now: datetime | None = None,
+) -> UplinkRow:
+    """Queue one record (inside the transaction writing the fact it replicates)."""
+    row = UplinkRow(
+        kind=kind,
+        node_id=node_id,
+        ref=str(ref),
+        measurement_id=measurement_id,
+        with_traces=with_traces,
+        created_at=now or utc_now(),
+        status=UplinkStatus.PENDING,
+        refusals=0,
+    )
+    session.add(row)
+    return row
+
+
+def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None) -> bool:
+    """Queue the node's identity and geometry unless a record of it is still pending (it is read
+    when sent, so one pending record carries the latest); True if one was queued."""
+    pending = session.scalar(
+        select(func.count()).select_from(UplinkRow).where(
+            UplinkRow.kind == UplinkKind.NODE, UplinkRow.node_id == node_id, UplinkRow.status == UplinkStatus.PENDING
+        )
+    )
+    if pending:
+        return False
+    enqueue(session, UplinkKind.NODE, node_id, node_id=node_id, now=now)
+    return True
+
+
+def request_traces(session: Session, measurement_id: int, node_id: str, *, now: datetime | None = None) -> UplinkRow:
+    """On demand: queue the measurement again, this time with its traces (the centre keeps its
+    record and adds the traces). The caller checks the traces are still held."""
+    return enqueue(
+        session, UplinkKind.MEASUREMENT, measurement_id, node_id=node_id, measurement_id=measurement_id,
+        with_traces=True, now=now,
+    )
+
+
+# ------------------------------------------------------------------ the sender's side
+def next_batch(session: Session, *, limit: int, after_node: str | None = None) -> list[UplinkRow]:
+    """Up to ``limit`` pending records: an equal share of each node's oldest (``id`` order).
+
+    Nodes take turns from the one after ``after_node`` (the previous batch's first node, in
+    node-id order, wrapping round); within the batch the records go round the nodes (each
+    node's first, then each node's second, ...), so a cut anywhere leaves every node's part
+    a prefix of its queue.
+    """
+    if limit < 1:
+        raise ValueError(f"limit must be >= 1, got {limit}")
+    group = func.coalesce(UplinkRow.node_id, NO_NODE)
+    nodes = list(session.scalars(
+        select(group).where(UplinkRow.status == UplinkStatus.PENDING).group_by(group).order_by(group)
+    ))
+    if not nodes:
+        return []
+    turn = rotate(nodes, after_node)
+    share = max(1, -(-limit // len(turn)))  # ceil: the share of each node, the batch is cut at limit
+    rank = func.row_number().over(partition_by=group, order_by=UplinkRow.id).label("rank")
+    ranked = (
+        select(UplinkRow.id.label("row_id"), group.label("grp"), rank)
+        .where(UplinkRow.status == UplinkStatus.PENDING)
+        .subquery()
+    )
+    position = case({node: index for index, node in enumerate(turn)}, value=ranked.c.grp, else_=len(turn))
+    ids = list(session.scalars(
+        select(ranked.c.row_id)
+        .where(ranked.c.rank <= share)
+        .order_by(ranked.c.rank, position)
+        .limit(limit)
+    ))
+    rows = {row.id: row for row in session.scalars(select(UplinkRow).where(UplinkRow.id.in_(ids)))}
+    return [rows[i] for i in ids]
+
+
+def rotate(nodes: Sequence[str], after: str | None) -> list[str]:
+    """``nodes`` (sorted) starting with the first one after ``after``, wrapping round (pure)."""
+    if after is None:
+        return list(nodes)
+    start = next((i for i, node in enumerate(nodes) if node > after), 0)
+    return [*nodes[start:], *nodes[:start]]
+
+
+def mark_sent(session: Session, ids: Sequence[int], *, now: datetime | None = None) -> int:
+    """The centre acknowledged these records; returns how many were still pending."""
+    if not ids:
+        return 0
+    result = session.execute(
+        update(UplinkRow)
+        .where(UplinkRow.id.in_(list(ids)), UplinkRow.status == UplinkStatus.PENDING)
+        .values(status=UplinkStatus.SENT, sent_at=now or utc_now(), last_error=None)
+        .execution_options(synchronize_session=False)
+    )
+    return _affected(result)
+
+
+def note_refusal(session: Session, record_id: int, error: str, *, give_up_after: int) -> bool:
+    """The centre refused the record as malformed: counted; after ``give_up_after`` refusals it is
+    ``refused`` and no longer holds its node's queue up. Returns True when it was given up on."""
+    row = session.get(UplinkRow, record_id)
+    if row is None or row.status != UplinkStatus.PENDING:
+        return False
+    row.refusals += 1
+    row.last_error = error[:2000]
+    if row.refusals >= give_up_after:
+        row.status = UplinkStatus.REFUSED
+    session.flush()
+    return row.status == UplinkStatus.REFUSED
+
+
+# ------------------------------------------------------------------ read side (/metrics, readiness)
+@dataclass(frozen=True)
+class QueueStats:
+    depth: int  # records not yet acknowledged by the centre
+    oldest_pending_at: datetime | None  # when the oldest of them was queued
+    refused: int  # records the centre refused (kept here)
+
+    def lag_s(self, now: datetime) -> float:
+        """Seconds the oldest unsent record has waited (0 when nothing waits)."""
+        if self.oldest_pending_at is None:
+            return 0.0
+        return max(0.0, (now - self.oldest_pending_at).total_seconds())
+
+
+def queue_stats(session: Session) -> QueueStats:
+    depth, oldest = session.execute(
+        select(func.count(), func.min(UplinkRow.created_at)).where(UplinkRow.status == UplinkStatus.PENDING)
+    ).one()
+    refused = session.scalar(
+        select(func.count()).select_from(UplinkRow).where(UplinkRow.status == UplinkStatus.REFUSED)
+    )
+    return QueueStats(int(depth or 0), _aware(oldest) if oldest is not None else None, int(refused or 0))
+
+
+def unsent_traces() -> Any:
+    """The measurements whose traces a record still has to carry (retention keeps them)."""
+    return select(UplinkRow.measurement_id).where(
+        UplinkRow.with_traces.is_(True), UplinkRow.status != UplinkStatus.SENT, UplinkRow.measurement_id.is_not(None)
+    )
+
+
+def _aware(value: datetime | str) -> datetime:
+    # min() over the column comes back untyped on SQLite (naive UTC text).
+    if isinstance(value, str):
+        value = datetime.fromisoformat(value)
+    return value if value.tzinfo is not None else value.replace(tzinfo=UTC)
+
+
+def _affected(result: Result[Any]) -> int:
+    return cast(CursorResult[Any], result).rowcount
