@@ -77,7 +77,8 @@ def _queue_cycle(
     baseline: BaselineRow | None,
 ) -> None:
     """The cycle's uplink records: the measurement (with its maps), then its detection, state change, baseline."""
-    enqueue_node(session, node_id)  # a node whose identity was never queued (its database predates the uplink)
+    # A node whose identity was never queued (connected before the uplink was configured) goes first.
+    enqueue_node(session, node_id, unless_ever=True)
     detection, state_change = record.detection, record.state_change
     with_traces = traces_go_up(
         policy, kind=record.kind, detection_state=detection.state if detection else None,

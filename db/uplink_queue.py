@@ -102,15 +102,16 @@ def enqueue(
     return row
 
 
-def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None) -> bool:
+def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None, unless_ever: bool = False) -> bool:
     """Queue the node's identity and geometry unless a record of it is still pending (it is read
-    when sent, so one pending record carries the latest); True if one was queued."""
-    pending = session.scalar(
-        select(func.count()).select_from(UplinkRow).where(
-            UplinkRow.kind == UplinkKind.NODE, UplinkRow.node_id == node_id, UplinkRow.status == UplinkStatus.PENDING
-        )
+    when sent, so one pending record carries the latest) or, with ``unless_ever``, unless one was
+    ever queued; True if one was queued."""
+    query = select(func.count()).select_from(UplinkRow).where(
+        UplinkRow.kind == UplinkKind.NODE, UplinkRow.node_id == node_id
     )
-    if pending:
+    if not unless_ever:
+        query = query.where(UplinkRow.status == UplinkStatus.PENDING)
+    if session.scalar(query):
         return False
     enqueue(session, UplinkKind.NODE, node_id, node_id=node_id, now=now)
     return True

@@ -19,6 +19,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from alerts.config import AlertingSettings
 from db.urls import DatabaseUrlError, check_database_url
 from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH
+from uplink.contract import MAX_BODY_BYTES, MAX_RECORDS_PER_BATCH
 
 # Upper bounds of the durations: far beyond any sensible setting, and far below what a timer can
 # wait (threading's TIMEOUT_MAX): `interval_s = 1e300` is a typo, not a schedule.
@@ -90,8 +91,8 @@ class UplinkSettings(_Section):
     send: Literal["everything", "flagged_traces"] = Field(
         "everything", description="flagged_traces: every record, but raw traces only of flagged measurements, "
         "baselines and on demand")
-    batch_records: int = Field(50, ge=1, le=1000, description="records per batch at most")
-    batch_bytes: int = Field(4_000_000, ge=10_000, le=64_000_000,
+    batch_records: int = Field(50, ge=1, le=MAX_RECORDS_PER_BATCH, description="records per batch at most")
+    batch_bytes: int = Field(4_000_000, ge=10_000, le=MAX_BODY_BYTES,
                              description="request body (before gzip) per batch at most; a bigger record goes alone")
     timeout_s: float = Field(30.0, gt=0, le=MAX_TIMEOUT_S, description="one request: connect, send, answer")
     idle_s: float = Field(2.0, gt=0, le=3600, description="how often an empty queue is looked at")

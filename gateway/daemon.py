@@ -6,17 +6,22 @@ import signal
 import threading
 import time
 from datetime import timedelta
+from typing import Any
 
 from alerts.delivery import AlertDelivery
 from alerts.events import storage_unavailable_event
+from db.clock import utc_now
 from db.database import Database, StorageOutage, open_database
 from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, StorageError
 from db.measurements import add_event_once
 from db.retention import prune_traces
+from db.uplink_queue import QueuePolicy, queue_stats
 from db.urls import safe_database_url
 from gateway.clock import STEP_TOLERANCE_S, Clock, ElapsedWall, SystemClock
 from gateway.config import GatewaySettings
 from gateway.metrics import MetricsServer, gateway_registry, serve_metrics
+from gateway.readiness import readiness_report
+from gateway.uplink.sender import UplinkKeyError, UplinkSender
 from gateway.watchdog import Heartbeats, sd_notify, watchdog_interval_s
 from gateway.worker import NodeWorker
 
@@ -37,6 +42,11 @@ class Gateway:
         self.retention_clock = ElapsedWall(self.clock)  # retention's now: never ahead of the elapsed time
         self.stop = threading.Event()
         self.heartbeats = Heartbeats()
+        # The uplink: every write from here on queues what it stores, before any worker writes.
+        self.uplink: UplinkSender | None = None
+        if settings.uplink is not None:
+            db.queue_uplink(QueuePolicy(settings.uplink.send))
+            self.uplink = UplinkSender(settings.uplink, db, stop=self.stop, heartbeats=self.heartbeats)
         self.workers = [
             NodeWorker(
                 node, db, self.heartbeats, self.stop, backoff_max_s=settings.reopen_backoff_max_s,
@@ -49,7 +59,7 @@ class Gateway:
         self._untold_outages: list[StorageOutage] = []
         # Alert delivery: one thread per sink plus the outage watcher; none of them waits on a node or on each other.
         self.alerting = AlertDelivery(settings.alerting, db, stop=self.stop, heartbeats=self.heartbeats)
-        self.metrics_registry = gateway_registry(self.workers, self.alerting.sink_workers, db)
+        self.metrics_registry = gateway_registry(self.workers, self.alerting.sink_workers, db, self.uplink)
         self.metrics: MetricsServer | None = None
 
     def stall_limits_s(self) -> dict[str, float]:
@@ -64,10 +74,22 @@ class Gateway:
         limits[RETENTION] = fixed or 3 * self.settings.retention.prune_every_s + 600
         limits[STORAGE] = fixed or 3 * STORAGE_TICK_S + 3600  # a quick_check of a large file takes minutes
         limits.update({name: fixed or limit for name, limit in self.alerting.stall_limits_s().items()})
+        if self.uplink is not None:
+            limits[self.uplink.thread.name] = fixed or self.uplink.stall_limit_s()
         return limits
 
     def threads(self) -> list[threading.Thread]:
-        return [w.thread for w in self.workers] + [self._retention, self._storage] + self.alerting.threads
+        uplink = [self.uplink.thread] if self.uplink is not None else []
+        return [w.thread for w in self.workers] + [self._retention, self._storage] + self.alerting.threads + uplink
+
+    def readiness(self) -> tuple[bool, dict[str, Any]]:
+        """``/readyz``: every loop alive, and the uplink's oldest unsent record younger than ``ready_lag_s``."""
+        if self.uplink is None:
+            return readiness_report(dead_loops=self.dead_loops(), now=utc_now())
+        with self.db.session() as session:
+            queue = queue_stats(session)
+        return readiness_report(dead_loops=self.dead_loops(), now=utc_now(), queue=queue, sender=self.uplink.stats,
+                                ready_lag_s=self.uplink.settings.ready_lag_s)
 
     def dead_loops(self) -> list[str]:
         """Loops whose thread ended while the daemon runs (a bug escaped its loop): nothing polls there any more."""
@@ -79,7 +101,9 @@ class Gateway:
         self._retention.start()
         self._storage.start()
         self.alerting.start()
-        self.metrics = serve_metrics(self.settings.metrics, self.metrics_registry)
+        if self.uplink is not None:
+            self.uplink.thread.start()
+        self.metrics = serve_metrics(self.settings.metrics, self.metrics_registry, self.readiness)
 
     def _retention_loop(self) -> None:
         r = self.settings.retention
@@ -152,6 +176,8 @@ class Gateway:
         self._retention.join(max(0.0, deadline - time.monotonic()))
         self._storage.join(max(0.0, deadline - time.monotonic()))
         self.alerting.join(max(0.0, deadline - time.monotonic()))
+        if self.uplink is not None:  # a request in flight ends by its timeout; its batch is re-sent next start
+            self.uplink.thread.join(max(0.0, deadline - time.monotonic()))
         if self.metrics is not None:
             self.metrics.close()
         self.db.dispose()
@@ -185,7 +211,12 @@ def run(settings: GatewaySettings) -> int:
     except StorageError as exc:
         log.error("database %s cannot be opened: %s: %s", shown, type(exc).__name__, exc)
         return EXIT_DATABASE_UNUSABLE
-    gateway = Gateway(settings, db)
+    try:
+        gateway = Gateway(settings, db)
+    except UplinkKeyError as exc:  # the key file went away since --check
+        log.error("uplink: %s", exc)
+        db.dispose()
+        return 2  # as for any config error
     signalled = threading.Event()
     threading.excepthook = _log_loop_death
 

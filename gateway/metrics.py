@@ -9,14 +9,18 @@ exposes what is in docs/api.md. Read at scrape time from the workers, no global 
 """
 from __future__ import annotations
 
+import json
 import logging
+import socket
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from wsgiref.simple_server import WSGIServer
+from typing import Any
+from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from prometheus_client import CollectorRegistry, Info, ProcessCollector, start_http_server
+from prometheus_client import CollectorRegistry, Info, ProcessCollector, make_wsgi_app
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import ThreadingWSGIServer
 from prometheus_client.registry import Collector
 
 from alerts.delivery import SinkWorker
@@ -25,7 +29,9 @@ from db.database import Database
 from db.errors import StorageError
 from db.models import DeliveryStatus
 from db.release import release_labels
+from db.uplink_queue import queue_stats
 from gateway.config import MetricsSettings
+from gateway.uplink.sender import UplinkSender
 from gateway.worker import NodeWorker
 
 log = logging.getLogger("pipesentry.gateway")
@@ -42,15 +48,19 @@ FAILURE_REASONS = {
 class GatewayCollector(Collector):
     """Per node and per sink, what this gateway process did since it started."""
 
-    def __init__(self, nodes: Sequence[NodeWorker], sinks: Sequence[SinkWorker], database: Database) -> None:
+    def __init__(self, nodes: Sequence[NodeWorker], sinks: Sequence[SinkWorker], database: Database,
+                 uplink: UplinkSender | None = None) -> None:
         self.nodes = nodes
         self.sinks = sinks
         self.database = database
+        self.uplink = uplink
 
     def collect(self) -> Iterator[Metric]:
         yield from self._storage_metrics()
         yield from self._node_metrics()
         yield from self._sink_metrics()
+        if self.uplink is not None:
+            yield from self._uplink_metrics(self.uplink)
 
     def _storage_metrics(self) -> Iterator[Metric]:
         available = GaugeMetricFamily("pipesentry_gateway_storage_available",
@@ -132,12 +142,45 @@ class GatewayCollector(Collector):
             yield depth
 
 
-def gateway_registry(nodes: Sequence[NodeWorker], sinks: Sequence[SinkWorker], database: Database) -> CollectorRegistry:
+    def _uplink_metrics(self, uplink: UplinkSender) -> Iterator[Metric]:
+        stats = uplink.stats
+        counters = (
+            ("batches", "batches the centre stored", stats.batches),
+            ("records", "records in them (new at the centre or already held)", stats.records),
+            ("duplicates", "records the centre already held (re-sent after a lost answer)", stats.duplicates),
+            ("failures", "batches sent that the centre did not store (link down, busy, refused)", stats.failures),
+        )
+        for name, doc, value in counters:
+            yield CounterMetricFamily(f"pipesentry_gateway_uplink_{name}", doc, value=value)
+        if stats.last_stored_at is not None:
+            yield GaugeMetricFamily("pipesentry_gateway_uplink_last_stored_timestamp_seconds",
+                                    "when the centre last stored a batch", value=stats.last_stored_at.timestamp())
+        try:
+            with self.database.session() as session:
+                queue = queue_stats(session)
+        except StorageError as error:  # the queue's figures are left out; the counters still tell
+            log.warning("gateway metrics: uplink queue unreadable: %s", error)
+            return
+        yield GaugeMetricFamily("pipesentry_gateway_uplink_queue_depth",
+                                "records waiting for the centre to acknowledge them", value=queue.depth)
+        yield GaugeMetricFamily("pipesentry_gateway_uplink_lag_seconds",
+                                "how long the oldest unsent record has waited (0: nothing waits)",
+                                value=queue.lag_s(uplink.clock()))
+        yield GaugeMetricFamily("pipesentry_gateway_uplink_refused_records",
+                                "records the centre refused, set aside (kept here, not sent)", value=queue.refused)
+        if queue.oldest_pending_at is not None:
+            yield GaugeMetricFamily("pipesentry_gateway_uplink_oldest_unsent_timestamp_seconds",
+                                    "when the oldest unsent record was queued (absent: nothing waits)",
+                                    value=queue.oldest_pending_at.timestamp())
+
+
+def gateway_registry(nodes: Sequence[NodeWorker], sinks: Sequence[SinkWorker], database: Database,
+                     uplink: UplinkSender | None = None) -> CollectorRegistry:
     """The gateway's registry: its collector, ``pipesentry_build_info`` and the process' series."""
     registry = CollectorRegistry(auto_describe=False)
     Info("pipesentry_build", "the running PipeSentry release", registry=registry).info(release_labels())
     ProcessCollector(registry=registry)
-    registry.register(GatewayCollector(nodes, sinks, database))
+    registry.register(GatewayCollector(nodes, sinks, database, uplink))
     return registry
 
 
@@ -158,19 +201,55 @@ class MetricsServer:
         self.thread.join(5.0)
 
 
-def serve_metrics(settings: MetricsSettings, registry: CollectorRegistry) -> MetricsServer | None:
-    """Serve ``registry`` on ``settings.host:port``; None (logged) when off or the address is taken.
+# The gateway's readiness: (ready, what it says); served as /readyz beside /metrics.
+Readiness = Callable[[], tuple[bool, dict[str, Any]]]
+
+
+class _QuietHandler(WSGIRequestHandler):
+    def log_message(self, format: str, *args: Any) -> None:
+        """Scrapes are not logged (one line per scrape every few seconds)."""
+
+
+def metrics_app(registry: CollectorRegistry, readiness: Readiness | None = None) -> Callable[..., Iterable[bytes]]:
+    """A WSGI app: ``/readyz`` answers the readiness (200 ready, 503 not, JSON), any other path the metrics."""
+    metrics = make_wsgi_app(registry)
+
+    def app(environ: dict[str, Any], start_response: Callable[..., Any]) -> Iterable[bytes]:
+        if environ.get("PATH_INFO") != "/readyz" or readiness is None:
+            return metrics(environ, start_response)
+        try:
+            ready, body = readiness()
+        except StorageError as error:
+            ready, body = False, {"status": "not ready", "reasons": [f"database unreadable: {error}"]}
+        payload = json.dumps(body).encode()
+        start_response("200 OK" if ready else "503 Service Unavailable",
+                       [("Content-Type", "application/json"), ("Content-Length", str(len(payload)))])
+        return [payload]
+
+    return app
+
+
+def serve_metrics(settings: MetricsSettings, registry: CollectorRegistry,
+                  readiness: Readiness | None = None) -> MetricsServer | None:
+    """Serve ``registry`` on ``settings.host:port`` (and ``readiness`` as ``/readyz``); None (logged)
+    when off or the address is taken.
 
     A taken port does not stop the gateway: monitoring the pipes matters more than its metrics,
     and the scrape's ``up == 0`` (PipeSentryGatewayDown) tells the operator.
     """
     if not settings.enabled:
         return None
+    class Server(ThreadingWSGIServer):
+        address_family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
+
     try:
-        server, thread = start_http_server(settings.port, addr=settings.host, registry=registry)
+        server = make_server(settings.host, settings.port, metrics_app(registry, readiness), Server,
+                             handler_class=_QuietHandler)
     except OSError as exc:
         log.error("metrics not served: cannot listen on %s:%d: %s", settings.host, settings.port, exc)
         return None
+    thread = threading.Thread(target=server.serve_forever, name="metrics", daemon=True)
+    thread.start()
     served = MetricsServer(server, thread)
     log.info("metrics on http://%s:%d/metrics", settings.host, served.port)
     return served
