@@ -164,20 +164,15 @@ def _measurement(session: Session, gw: str, measurement_id: int, uid: str, *, wi
             excitation_hz=m.excitation_hz, cycles=m.cycles,
         ),
         velocity_m_s=m.velocity_m_s, wall_mm=m.wall_mm,
-        traces=Blob.of(stored, dtype="<i2", sha256=m.traces_sha256, nbytes=m.n_channels * m.n_samples * 2),
+        traces=Blob.of(stored, dtype="<i2", sha256=m.traces_sha256, nbytes=m.traces_nbytes),
         di_maps=[_di_map(gw, di_map) for di_map in maps],
     )
 
 
 def _di_map(gw: str, di_map: DiMapRow) -> DiMapRecord:
-    grid = di_map.grid
-    try:
-        n_pixels = int(grid["axial_count"]) * int(grid["angle_count"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise RecordUnreadable(f"DI map {di_map.id} has an unreadable grid: {exc}") from None
     return DiMapRecord(
-        source=di_map.source.value, method=di_map.method, grid=dict(grid),
+        source=di_map.source.value, method=di_map.method, grid=dict(di_map.grid),
         baseline_measurement_uid=_measurement_uid(gw, di_map.baseline_measurement_id),
-        pixels=Blob.of(di_map.pixels_blob, dtype="<f4", sha256=di_map.pixels_sha256, nbytes=n_pixels * 4),
+        pixels=Blob.of(di_map.pixels_blob, dtype="<f4", sha256=di_map.pixels_sha256, nbytes=len(di_map.pixels_blob)),
         peak_di=di_map.peak_di, created_at=di_map.created_at,
     )
