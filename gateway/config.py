@@ -89,8 +89,8 @@ class UplinkSettings(_Section):
     site: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
                       description="the site its key may write")
     send: Literal["everything", "flagged_traces"] = Field(
-        "everything", description="flagged_traces: every record, but raw traces only of flagged measurements, "
-        "baselines and on demand")
+        "everything", description="flagged_traces: every record, but raw traces only of flagged measurements "
+        "and baselines")
     batch_records: int = Field(50, ge=1, le=MAX_RECORDS_PER_BATCH, description="records per batch at most")
     batch_bytes: int = Field(4_000_000, ge=10_000, le=MAX_BODY_BYTES,
                              description="request body (before gzip) per batch at most; a bigger record goes alone")
