@@ -13,7 +13,7 @@ from db.measurements import add_event_once, store_measurement
 from db.models import BaselineRow, DetectionRow, MeasurementRow, StateChangeRow, UplinkKind
 from db.nodes import record_node_health
 from db.records import CycleRecord, EventInput
-from db.uplink_queue import QueuePolicy, enqueue, enqueue_node, queue_policy, traces_go_up
+from db.uplink_queue import QueuePolicy, enqueue, queue_policy, traces_go_up
 
 # The outbox events a stored measurement causes, built once its id is known (event ids derive from it).
 EventsFor = Callable[[int], Sequence[EventInput]]
@@ -77,8 +77,7 @@ def _queue_cycle(
     baseline: BaselineRow | None,
 ) -> None:
     """The cycle's uplink records: the measurement (with its maps), then its detection, state change, baseline."""
-    # A node whose identity was never queued (connected before the uplink was configured) goes first.
-    enqueue_node(session, node_id, unless_ever=True)
+    # (The node's own record is queued when the gateway connects to it: upsert_node.)
     detection, state_change = record.detection, record.state_change
     with_traces = traces_go_up(
         policy, kind=record.kind, detection_state=detection.state if detection else None,

@@ -387,6 +387,7 @@ class UplinkRow(Base):
     __tablename__ = "uplink_queue"
     __table_args__ = (
         Index("ix_uplink_queue_status_node", "status", "node_id", "id"),
+        Index("ix_uplink_queue_node_kind", "node_id", "kind", "id"),
         Index("ix_uplink_queue_measurement", "measurement_id"),
     )
 

@@ -24,11 +24,11 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal, cast
 
-from sqlalchemy import CursorResult, Result, case, func, select, update
+from sqlalchemy import CursorResult, Result, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
-from db.models import MeasurementKind, NodeState, UplinkKind, UplinkRow, UplinkStatus
+from db.models import BaselineRow, MeasurementKind, MeasurementRow, NodeState, UplinkKind, UplinkRow, UplinkStatus
 
 QUEUE_POLICY = "pipesentry.uplink_queue"  # key of Session.info: the QueuePolicy of sessions that queue
 FLAGGED_STATES = frozenset({NodeState.SUSPECTED, NodeState.DAMAGE})
@@ -102,19 +102,40 @@ def enqueue(
     return row
 
 
-def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None, unless_ever: bool = False) -> bool:
+def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None) -> bool:
     """Queue the node's identity and geometry unless a record of it is still pending (it is read
-    when sent, so one pending record carries the latest) or, with ``unless_ever``, unless one was
-    ever queued; True if one was queued."""
-    query = select(func.count()).select_from(UplinkRow).where(
-        UplinkRow.kind == UplinkKind.NODE, UplinkRow.node_id == node_id
-    )
-    if not unless_ever:
-        query = query.where(UplinkRow.status == UplinkStatus.PENDING)
-    if session.scalar(query):
+    when sent, so one pending record carries the latest); True if one was queued.
+
+    The node's first record ever (its database predates the uplink) is followed by the node's
+    baselines stored before: later records refer to them (a detection to the baseline it was
+    imaged against), and the centre accepts a reference only to a record it holds.
+    """
+    statuses = select(UplinkRow.status).where(UplinkRow.node_id == node_id, UplinkRow.kind == UplinkKind.NODE)
+    if session.scalar(statuses.where(UplinkRow.status == UplinkStatus.PENDING).limit(1)) is not None:
         return False
+    first = session.scalar(statuses.limit(1)) is None
     enqueue(session, UplinkKind.NODE, node_id, node_id=node_id, now=now)
+    if first:
+        _enqueue_earlier_baselines(session, node_id, now=now)
     return True
+
+
+def _enqueue_earlier_baselines(session: Session, node_id: str, *, now: datetime | None) -> None:
+    """The node's baseline measurements (with their traces) and baseline records, oldest first."""
+    ever_baseline = select(BaselineRow.measurement_id).where(BaselineRow.node_id == node_id)
+    measurement_ids = session.scalars(
+        select(MeasurementRow.id)
+        .where(MeasurementRow.node_id == node_id,
+               or_(MeasurementRow.kind == MeasurementKind.BASELINE, MeasurementRow.id.in_(ever_baseline)))
+        .order_by(MeasurementRow.id)
+    ).all()
+    for measurement_id in measurement_ids:
+        enqueue(session, UplinkKind.MEASUREMENT, measurement_id, node_id=node_id, measurement_id=measurement_id,
+                with_traces=True, now=now)
+    for baseline_id, measurement_id in session.execute(
+        select(BaselineRow.id, BaselineRow.measurement_id).where(BaselineRow.node_id == node_id).order_by(BaselineRow.id)
+    ).all():
+        enqueue(session, UplinkKind.BASELINE, baseline_id, node_id=node_id, measurement_id=measurement_id, now=now)
 
 
 def request_traces(session: Session, measurement_id: int, node_id: str, *, now: datetime | None = None) -> UplinkRow:

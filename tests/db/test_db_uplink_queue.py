@@ -203,3 +203,17 @@ def test_the_queue_says_its_depth_and_how_long_its_oldest_unsent_record_has_wait
         stats = queue_stats(session)
     assert stats.depth == 2 and stats.oldest_pending_at == T0
     assert stats.lag_s(T0 + minutes(5)) == 300.0
+
+
+def test_a_database_that_predates_the_uplink_sends_the_nodes_earlier_baselines_first(sqlite_url):
+    before = open_database(sqlite_url)
+    base_id, monitor_id = commission_and_flag(before)  # stored without a queue
+    before.dispose()
+    db = open_database(sqlite_url)
+    db.queue_uplink(QueuePolicy("flagged_traces"))
+    with db.write() as session:
+        upsert_node(session, node_info(), seen_at=T0)  # the gateway connects
+    assert [(kind, ref, traces) for kind, _n, ref, traces in queued(db)] == [
+        ("node", "node-a", False), ("measurement", str(base_id), True), ("baseline", "1", False)]
+    assert str(monitor_id) not in {ref for _k, _n, ref, _t in queued(db)}  # the rest of the history stays here
+    db.dispose()

@@ -52,10 +52,12 @@ def upgrade() -> None:
         _one_of("status", STATUSES, "ck_uplink_queue_uplink_status"),
     )
     op.create_index("ix_uplink_queue_status_node", "uplink_queue", ["status", "node_id", "id"])
+    op.create_index("ix_uplink_queue_node_kind", "uplink_queue", ["node_id", "kind", "id"])
     op.create_index("ix_uplink_queue_measurement", "uplink_queue", ["measurement_id"])
 
 
 def downgrade() -> None:
     op.drop_index("ix_uplink_queue_measurement", table_name="uplink_queue")
+    op.drop_index("ix_uplink_queue_node_kind", table_name="uplink_queue")
     op.drop_index("ix_uplink_queue_status_node", table_name="uplink_queue")
     op.drop_table("uplink_queue")
