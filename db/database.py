@@ -27,9 +27,9 @@ from db.errors import (
     StorageUnavailable,
     translate_db_error,
 )
+from db.uplink_queue import QUEUE_POLICY, QueuePolicy
 
 log = logging.getLogger("pipesentry.storage")
-from db.uplink_queue import QUEUE_POLICY, QueuePolicy
 
 SQLITE_POOL_SIZE = 16  # connections kept open (each is a file handle and a small page cache)
 SQLITE_POOL_OVERFLOW = 32
