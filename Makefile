@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint bench clean
+.PHONY: demo test test-fast chaos lint bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ test: $(STAMP) lint
 # The unit tests only (no real processes, PostgreSQL or browser): about a minute.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not e2e and not postgres and not browser"
+
+# The chaos suite at full size (tests/chaos: more kills and outages, the 16-node soak); `make test` runs
+# it reduced. Needs root for the tmpfs mounts of the disk-full cases. About 10 minutes on 2 cores.
+chaos: $(STAMP)
+	PIPESENTRY_CHAOS_FULL=1 $(BIN)/python -m pytest tests/chaos -s -q
 
 # Lint and type gates (part of `make test`).
 lint: $(STAMP)
