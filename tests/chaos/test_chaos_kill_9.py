@@ -30,7 +30,7 @@ from tests.support.process_harness import (
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(600)]  # mock nodes and the gateway as real processes
 
 NODES = ["kill-a", "kill-b"]
-MOMENTS = ("delivery", "storage", "acquisition")  # the reduced run does the first two
+MOMENTS = ("delivery", "storage", "acquisition")  # reduced: delivery only (tests/gateway kills during stores)
 SECRET = "whsec_" + base64.b64encode(bytes(range(32))).decode()
 
 
@@ -91,7 +91,7 @@ def test_kill_9_at_random_moments_loses_nothing_committed(tmp_path: Path):
             counts.faults += 1
             moments["migration"] = moments.get("migration", 0) + 1
             assert _integrity(db_path) == "ok"
-        for round_no in range(size(2, 36)):
+        for round_no in range(size(1, 36)):
             moment = MOMENTS[round_no % len(MOMENTS)]
             gateway = start_gateway(config, tmp_path, name=f"gateway{round_no}")
             stored = len(_snapshot(db_path))
@@ -113,6 +113,7 @@ def test_kill_9_at_random_moments_loses_nothing_committed(tmp_path: Path):
             committed = now
         # A last start delivers what is still pending: every event reaches the receiver at least once.
         gateway = start_gateway(config, tmp_path, name="final")
+        wait_until(lambda: "gateway started" in gateway.stderr, 120, 0.1, what="the last start")
         events = _event_ids(db_path)
         receiver.wait_for(lambda r: events <= _delivered_ids(r), 120, "every event delivered")
         assert gateway.terminate(timeout_s=15) == 0, gateway.stderr[-3000:]
