@@ -3,7 +3,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from datetime import datetime
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -25,12 +24,8 @@ class StoredCycle:
     events: tuple[EventInput, ...]  # the events added to the outbox (a fact already there is not added again)
 
 
-def store_cycle(
-    session: Session, node_id: str, record: CycleRecord, events_for: EventsFor | None = None,
-    *, now: datetime | None = None,
-) -> StoredCycle:
-    """Store ``record`` and the events it causes; call inside ``Database.write()``. ``now``: the storing
-    clock's time (the rows' created_at, the node's last_seen_at; default the wall clock).
+def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for: EventsFor | None = None) -> StoredCycle:
+    """Store ``record`` and the events it causes; call inside ``Database.write()``.
 
     The measurement, its maps, verdict and state change, the baseline it may become, its
     outbox events, their uplink records (when the session queues for an uplink) and the node's
@@ -57,7 +52,6 @@ def store_cycle(
         di_maps=record.di_maps,
         detection=record.detection,
         state_change=record.state_change,
-        now=now,
     )
     baseline = None
     if record.activate_baseline is not None:
@@ -68,7 +62,7 @@ def store_cycle(
     events = tuple(
         event for event in (events_for(row.id) if events_for else ()) if add_event_once(session, event, node_id=node_id)
     )
-    record_node_health(session, node_id, online=True, error_counters=record.error_counters, seen_at=now)
+    record_node_health(session, node_id, online=True, error_counters=record.error_counters)
     return StoredCycle(row.id, events)
 
 

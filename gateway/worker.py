@@ -409,7 +409,6 @@ class NodeWorker:
                 session, self.settings.id, record,
                 lambda measurement_id: verdict.events(self.alerting, node_id=self.settings.id,
                                                       measurement_id=measurement_id),
-                now=self.clock.wall(),
             )
         if acquisition.filled_slot and self.conn is not None:  # the node's own maps are made against this record
             self.conn = dataclasses.replace(self.conn, slot_measurement_id=stored.measurement_id)
