@@ -204,8 +204,14 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
     # Map column (pos, path, shape) on receiver m to unknowns (pos, path, basis, shape).
     n_cols, n_unknowns = n_pos * n_paths * 2, n_pos * n_paths * n_basis * 2
-    mapping = np.zeros((n_rx, n_cols, n_unknowns))
     w = weight.transpose(1, 2, 0)  # [m, pos, P]
+    if n_basis == 1:  # one amplitude per path: the mapping below is diagonal, a column's weight w_mp
+        wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)  # the basis is the constant 1
+        big_gram = np.einsum("ma,mab,mb->ab", wc, gram, wc)
+        unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ np.einsum("ma,ma->a", wc, rhs)
+        return _synthesise(wc * unknowns[None, :], valid, shapes[kind], window, padded.shape[1], n_pos, n_paths,
+                           n_rx, size, n)
+    mapping = np.zeros((n_rx, n_cols, n_unknowns))
     for pos in range(n_pos):
         for p in range(n_paths):
             for x in range(2):
@@ -216,8 +222,14 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     big_rhs = np.einsum("mau,ma->u", mapping, rhs)
     unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
     coef = np.einsum("mau,u->ma", mapping, unknowns)
+    return _synthesise(coef, valid, shapes[kind], window, padded.shape[1], n_pos, n_paths, n_rx, size, n)
+
+
+def _synthesise(coef: np.ndarray, valid: np.ndarray, shapes: np.ndarray, window: np.ndarray, width: int,
+                n_pos: int, n_paths: int, n_rx: int, size: int, n: int) -> list[np.ndarray]:
+    """Each position's fitted echoes on every receiver: the columns' bursts times their coefficients."""
     owner = np.repeat(np.arange(n_pos), n_paths * 2)[None, :].repeat(n_rx, axis=0)
-    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * padded.shape[1] + window
-    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes[kind]
-    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * padded.size)
+    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * width + window
+    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes
+    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * n_rx * width)
     return [np.ascontiguousarray(e[:, size:size + n]) for e in total.reshape(n_pos, n_rx, -1)]
