@@ -11,6 +11,7 @@ rather than image against a wrong reference.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -227,12 +228,20 @@ def _in_band_energy(x: np.ndarray, m: Measurement) -> np.ndarray:
 
     By Parseval, sum |X(f)|^2 |B(f)|^2 over the (zero-padded) spectrum: the correlation's energy
     without computing the correlation."""
-    burst = hann_burst(m.fs_hz, m.excitation_hz, m.cycles)
-    n_fft = sp_fft.next_fast_len(x.shape[-1] + burst.size, real=True)
-    gain = np.abs(sp_fft.rfft(burst, n_fft)) ** 2
+    n_fft, gain = _burst_power(m.fs_hz, m.excitation_hz, m.cycles, x.shape[-1])
     power = np.abs(sp_fft.rfft(x, n_fft, axis=-1)) ** 2
     power[..., 1:] *= 2.0  # the one-sided spectrum's other half (DC and Nyquist counted twice: immaterial here)
     return np.einsum("krf,f->k", power, gain)
+
+
+@functools.lru_cache(maxsize=16)
+def _burst_power(fs_hz: float, excitation_hz: float, cycles: int, n: int) -> tuple[int, np.ndarray]:
+    """(FFT length for ``n`` samples, |B(f)|^2 of the excitation burst at that length), per acquisition setup."""
+    burst = hann_burst(fs_hz, excitation_hz, cycles)
+    n_fft = sp_fft.next_fast_len(n + burst.size, real=True)
+    gain = np.abs(sp_fft.rfft(burst, n_fft)) ** 2
+    gain.flags.writeable = False
+    return n_fft, gain
 
 
 def _parabola_min(x: np.ndarray, y: np.ndarray) -> float:
