@@ -67,6 +67,33 @@ def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.n
     return np.ascontiguousarray(samples.transpose(1, 2, 0))
 
 
+def _normal_equations(
+    residual: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray, shapes: np.ndarray,
+    table: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per receiver, the Gram matrix and right-hand side of the burst columns starting at ``starts``
+    (shape ``kind``: burst or quadrature twin; ``valid`` columns only), and the zero-padded residual
+    with each column's sample indices into it: (gram [m, a, b], rhs [m, a], padded, window [m, a, u])."""
+    n_rx, n = residual.shape
+    size = shapes.shape[1]
+    # Gram: overlap of each pair inside the record, as a difference of partial products.
+    ka, kb = starts[:, :, None], starts[:, None, :]
+    lo = np.maximum(np.maximum(ka, kb), 0)
+    hi = np.minimum(np.minimum(ka, kb) + size, n)
+    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
+    xa, xb = kind[:, :, None], kind[:, None, :]
+    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
+    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
+                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
+    # Right-hand side: each column's samples times the residual's (zero outside the record).
+    padded = np.zeros((n_rx, n + 2 * size))
+    padded[:, size:size + n] = residual
+    window = (size + starts)[:, :, None] + np.arange(size)  # [m, column, u]: indices into ``padded``
+    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
+    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
+    return gram, rhs, padded, window
+
+
 def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:
     """Joint least-squares fit, on each of the scene's healthy receivers, of point scatterers' echoes at
     ``positions`` (axial_mm, angle_deg), along the scene's modelled paths.
@@ -90,21 +117,7 @@ def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, 
     order = np.argsort(~valid, axis=1, kind="stable")[:, : max(1, int(valid.sum(axis=1).max()))]
     starts, kind, owner, valid = (np.take_along_axis(x, order, axis=1) for x in (starts, kind, owner, valid))
     starts = np.where(valid, starts, 0)
-    # Gram: overlap of each pair inside the record, as a difference of partial products.
-    ka, kb = starts[:, :, None], starts[:, None, :]
-    lo = np.maximum(np.maximum(ka, kb), 0)
-    hi = np.minimum(np.minimum(ka, kb) + size, n)
-    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
-    xa, xb = kind[:, :, None], kind[:, None, :]
-    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
-    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
-                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
-    # Right-hand side: each column's samples times the residual's (zero outside the record).
-    padded = np.zeros((n_rx, n + 2 * size))
-    padded[:, size:size + n] = residual
-    window = (size + starts)[:, :, None] + np.arange(size)  # [m, column, u]: indices into ``padded``
-    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
-    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
+    gram, rhs, padded, window = _normal_equations(residual, starts, kind, valid, shapes, table)
     coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
     # Each position's echoes: every column's coefficient times its shape, added at its samples.
     flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * padded.shape[1] + window
@@ -189,19 +202,7 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
     valid = (starts < n) & (starts + size > 0) & scene.rx_mask[:, None]
     starts = np.where(valid, starts, 0)
-    ka, kb = starts[:, :, None], starts[:, None, :]
-    lo = np.maximum(np.maximum(ka, kb), 0)
-    hi = np.minimum(np.minimum(ka, kb) + size, n)
-    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
-    xa, xb = kind[:, :, None], kind[:, None, :]
-    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
-    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
-                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
-    padded = np.zeros((n_rx, n + 2 * size))
-    padded[:, size:size + n] = residual
-    window = (size + starts)[:, :, None] + np.arange(size)
-    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
-    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
+    gram, rhs, padded, window = _normal_equations(residual, starts, kind, valid, shapes, table)
     # Map column (pos, path, shape) on receiver m to unknowns (pos, path, basis, shape).
     n_cols, n_unknowns = n_pos * n_paths * 2, n_pos * n_paths * n_basis * 2
     w = weight.transpose(1, 2, 0)  # [m, pos, P]
