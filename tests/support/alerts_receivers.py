@@ -13,8 +13,10 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from typing import Any
+
+from tests.support.local_http import serve_locally, stop_serving, url_of
 
 HANG_LIMIT_S = 30.0  # a hanging answer never outlives the test
 
@@ -58,15 +60,11 @@ class HttpReceiver:
         self.invalid: list[str] = []
         self._cond = threading.Condition()
         self._release = threading.Event()
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler_class())
-        self.server.daemon_threads = True
-        self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-        self.thread.start()
+        self.server = serve_locally(self._handler_class())
 
     @property
     def url(self) -> str:
-        host, port = self.server.server_address[:2]
-        return f"http://{host}:{port}"
+        return url_of(self.server)
 
     def _handler_class(self):
         receiver = self
@@ -123,8 +121,7 @@ class HttpReceiver:
 
     def close(self) -> None:
         self._release.set()
-        self.server.shutdown()
-        self.server.server_close()
+        stop_serving(self.server)
 
 
 # ------------------------------------------------------------------ Alertmanager v2 schema

@@ -12,9 +12,10 @@ import gzip
 import json
 import threading
 from dataclasses import dataclass, field
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from typing import Any
 
+from tests.support.local_http import serve_locally, stop_serving, url_of
 from uplink.contract import IngestBatch, IngestResult
 
 
@@ -45,15 +46,11 @@ class ScriptedCentre:
         self.seen: list[Seen] = []
         self.held: dict[str, Any] = {}  # uid -> record, as stored
         self._lock = threading.Lock()
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler())
-        self.server.daemon_threads = True
-        self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-        self.thread.start()
+        self.server = serve_locally(self._handler())
 
     @property
     def url(self) -> str:
-        host, port = self.server.server_address[:2]
-        return f"http://{host}:{port}"
+        return url_of(self.server)
 
     def _handler(self):
         centre = self
@@ -96,5 +93,4 @@ class ScriptedCentre:
         return Reply(200, {}, result.model_dump(mode="json"))
 
     def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
+        stop_serving(self.server)
