@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -90,12 +92,20 @@ def test_a_real_prometheus_scrapes_both_jobs_of_the_shipped_config_and_evaluates
                 assert [float(t["value"][1]) for t in threshold] == [pytest.approx(3 * 0.3 + 600)]
                 assert prometheus.query(silent) == []  # measured a moment ago: not silent
 
+                # A rule evaluated before the first scrape sees no `up` series (absent() is true) and
+                # stays pending until its next evaluation: judge only evaluations made after both jobs
+                # were up, one evaluation interval (1 s) later so the scrape's samples are in.
+                settled_after = time.time() + 1.0
+
                 def evaluated() -> list[dict]:
                     groups = prometheus.api("rules")["groups"]
                     rules = [r for g in groups for r in g["rules"]]
-                    return rules if all(r.get("lastEvaluation", "").startswith("20") for r in rules) else []
+                    done = all(r.get("lastEvaluation", "").startswith("20")
+                               and datetime.fromisoformat(r["lastEvaluation"]).timestamp() > settled_after
+                               for r in rules)
+                    return rules if done else []
 
-                rules = wait_until(evaluated, 30, 0.5, what="every rule evaluated")
+                rules = wait_until(evaluated, 30, 0.5, what="every rule evaluated after both jobs were up")
                 assert len(rules) == 8
                 assert all(r["health"] == "ok" and not r.get("lastError") for r in rules), rules
                 assert [r["name"] for r in rules if r["state"] != "inactive"] == []
