@@ -11,10 +11,11 @@ from pathlib import Path
 
 from alembic import command
 from sqlalchemy import create_engine
+from sqlalchemy.exc import DBAPIError
 
 from db import migrate
 from db.database import open_database
-from db.errors import StorageError
+from db.errors import StorageError, translate_db_error
 from db.urls import DatabaseUrlError, check_database_url
 
 
@@ -24,6 +25,12 @@ def main(argv: list[str] | None = None) -> int:
         return _run(argv)
     except StorageError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    except DBAPIError as error:
+        typed = translate_db_error(error)
+        if typed is None:
+            raise
+        print(f"error: {typed}", file=sys.stderr)
         return 2
 
 

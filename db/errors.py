@@ -133,4 +133,7 @@ def translate_db_error(error: BaseException) -> StorageUnavailable | DatabaseDam
         isinstance(sqlstate, str) and (sqlstate.startswith(_PG_CONNECTION_CLASS) or sqlstate in _PG_SERVER_SHUTDOWN)
     ):
         return StorageConnectionLost(f"database connection lost: {message}")
+    if isinstance(error, sa_exc.OperationalError) and sqlstate is None:
+        # No SQLSTATE: the server was never reached (name not resolved, connection refused, timeout).
+        return StorageConnectionLost(f"cannot reach the database server: {message}")
     return None

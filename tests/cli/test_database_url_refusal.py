@@ -64,3 +64,28 @@ def test_the_api_refuses_to_start_on_a_url_that_cannot_work(url):
 def test_the_api_still_starts_before_the_gateway_created_the_file(tmp_path):
     """A missing file in an existing directory is normal at first boot: /readyz says so (503) until it exists."""
     assert ApiSettings(database_url=f"sqlite:///{tmp_path / 'later.db'}").database_url.endswith("later.db")
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as probe:  # bound and closed again: nothing listens there
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    "command", ["gateway", "alerts deliver", "apikey list", "python -m db upgrade", "python -m db current"],
+)
+def test_every_command_says_so_when_the_postgresql_server_cannot_be_reached(tmp_path, command):
+    """A PostgreSQL server that is down (or a host name that does not resolve: the same
+    driver error, with no SQLSTATE) used to end these commands in a traceback with exit 1."""
+    url = f"postgresql+psycopg://pipesentry@127.0.0.1:{_closed_port()}/test"
+    commands = _commands(tmp_path, url)
+    commands["alerts deliver"] = [sys.executable, "-m", "pipesentry", "alerts", "deliver",
+                                  "--config", str(tmp_path / "gateway.toml")]
+    proc = subprocess.run(commands[command], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert "cannot reach the database server" in proc.stderr and "Connection refused" in proc.stderr, proc.stderr
