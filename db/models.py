@@ -89,6 +89,15 @@ class UplinkStatus(StrEnum):
     REFUSED = "refused"  # the centre refused it as malformed: kept here, never retried on its own
 
 
+class TraceRequestStatus(StrEnum):
+    """Where a central operator's request for a measurement's raw traces stands (revision 0009)."""
+
+    REQUESTED = "requested"  # recorded here, the gateway has not answered yet
+    HELD = "held"  # the gateway holds the traces and has queued them for upload
+    RECEIVED = "received"  # the traces arrived and were added to the measurement
+    PRUNED = "pruned"  # the gateway answered that it no longer holds them
+
+
 class Role(StrEnum):
     VIEWER = "viewer"
     OPERATOR = "operator"
@@ -367,6 +376,7 @@ class IngestedRecordRow(Base):
     """A record the central site received from an edge, by its edge-made uid: stored once, ever."""
 
     __tablename__ = "ingested_records"
+    __table_args__ = (Index("ix_ingested_records_kind_central_id", "kind", "central_id"),)  # (revision 0009)
 
     uid: Mapped[str] = mapped_column(String(200), primary_key=True)
     gateway_id: Mapped[str] = mapped_column(String(64))
@@ -402,3 +412,23 @@ class UplinkRow(Base):
     sent_at: Mapped[datetime | None]
     refusals: Mapped[int] = mapped_column(Integer, server_default="0")
     last_error: Mapped[str | None] = mapped_column(Text)
+
+
+class TraceRequestRow(Base):
+    """A central operator's request for the raw traces of a measurement a gateway sent without them
+    (revision 0009): one per measurement, asked again on the same row. The gateway polls for the
+    ``requested`` ones of its site and answers ``held`` or ``pruned``; ingest marks it ``received``."""
+
+    __tablename__ = "trace_requests"
+    __table_args__ = (Index("ix_trace_requests_pending", "site", "gateway_id", "status", "id"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    measurement_id: Mapped[int] = mapped_column(BigId, ForeignKey("measurements.id"), unique=True)
+    measurement_uid: Mapped[str] = mapped_column(String(200))  # the edge's uid of the measurement
+    gateway_id: Mapped[str] = mapped_column(String(64))
+    site: Mapped[str] = mapped_column(String(64))
+    status: Mapped[TraceRequestStatus] = mapped_column(_enum(TraceRequestStatus, "trace_request_status"))
+    requested_by: Mapped[str] = mapped_column(String(128))  # the API key's name
+    requested_at: Mapped[datetime]
+    answered_at: Mapped[datetime | None]  # when the gateway answered held or pruned
+    received_at: Mapped[datetime | None]
