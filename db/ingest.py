@@ -5,7 +5,9 @@ written in order, and the first one that is refused (another gateway's node, a r
 record the centre does not hold, a map without its pixels) raises :class:`IngestRefused` naming
 it, so the transaction rolls back and nothing of the batch is kept. Records the centre already
 holds (by their edge-made uid) are counted as duplicates and left untouched, so a retried or
-replayed batch changes nothing.
+replayed batch changes nothing; the one exception is a measurement stored without its traces,
+which takes them from a record of the same uid that carries them (traces on demand:
+``uplink.contract.resent_measurement``, ``db.trace_requests``).
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from db.models import (
     Severity,
     StateChangeRow,
 )
+from db.trace_requests import mark_received
 from uplink.contract import (
     AlertEventRecord,
     BaselineRecord,
@@ -43,6 +46,8 @@ from uplink.contract import (
     MeasurementRecord,
     NodeRecord,
     StateChangeRecord,
+    StoredTraces,
+    resent_measurement,
 )
 
 EDGE_ORIGIN = "edge"
@@ -173,6 +178,27 @@ class _Batch:
             ))
         self.remember(record.uid, record.kind, row.id)
 
+    def measurement_again(self, record: MeasurementRecord) -> Literal["accepted", "duplicate"]:
+        """A measurement held already: its traces added if it lacks them and the record brings them."""
+        if record.traces.data is None:
+            return "duplicate"
+        self.own_node(record.node_id)
+        row = self.session.get(MeasurementRow, self.measurement_id(record.uid))
+        if row is None or row.node_id != record.node_id:
+            raise _Refused("invalid", f"measurement {record.uid!r} is not node {record.node_id!r}'s here")
+        stored = StoredTraces(here=row.traces_pruned_at is None, codec=row.traces_codec, dtype=row.traces_dtype,
+                              sha256=row.traces_sha256, nbytes=row.traces_nbytes)
+        try:
+            outcome = resent_measurement(stored, record)
+        except ValueError as exc:
+            raise _Refused("invalid", str(exc)) from None
+        if outcome == "duplicate":
+            return "duplicate"
+        row.traces_blob = record.traces.raw()
+        row.traces_pruned_at = None
+        mark_received(self.session, row.id, now=self.now)
+        return "accepted"
+
     def baseline(self, record: BaselineRecord) -> None:
         self.own_node(record.node_id)
         measurement_id = self.measurement_id(record.measurement_uid)
@@ -255,7 +281,7 @@ def ingest_batch(session: Session, batch: IngestBatch, *, key_site: str, alert_s
                 outcome = work.node(record)
                 session.flush()
             elif record.uid in held:
-                outcome = "duplicate"
+                outcome = work.measurement_again(record) if isinstance(record, MeasurementRecord) else "duplicate"
             else:
                 getattr(work, record.kind)(record)
                 outcome = "accepted"

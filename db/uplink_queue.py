@@ -147,6 +147,32 @@ def request_traces(session: Session, measurement_id: int, node_id: str, *, now: 
     )
 
 
+def answer_trace_request(
+    session: Session, gateway_id: str, measurement_uid: str, *, now: datetime | None = None,
+) -> Literal["held", "pruned"]:
+    """The centre asks for a measurement's traces (call inside ``Database.write()``): ``held`` when
+    they are still here, with the measurement queued again with them unless a record that carries
+    them is pending already (so a request asked twice queues once); ``pruned`` when retention
+    removed them, or the uid names no measurement of this gateway's."""
+    prefix = f"{gateway_id}/measurement/"
+    local = measurement_uid.removeprefix(prefix)
+    if local == measurement_uid or not local.isdigit():
+        return "pruned"
+    measurement_id = int(local)
+    found = session.execute(
+        select(MeasurementRow.node_id, MeasurementRow.traces_pruned_at).where(MeasurementRow.id == measurement_id)
+    ).first()
+    if found is None or found.traces_pruned_at is not None:
+        return "pruned"
+    queued = session.scalar(
+        select(UplinkRow.id).where(UplinkRow.measurement_id == measurement_id, UplinkRow.kind == UplinkKind.MEASUREMENT,
+                                   UplinkRow.with_traces.is_(True), UplinkRow.status == UplinkStatus.PENDING).limit(1)
+    )
+    if queued is None:
+        request_traces(session, measurement_id, found.node_id, now=now)
+    return "held"
+
+
 # ------------------------------------------------------------------ the sender's side
 def next_batch(session: Session, *, limit: int, after_node: str | None = None) -> list[UplinkRow]:
     """Up to ``limit`` pending records: an equal share of each node's oldest (``id`` order).

@@ -89,13 +89,16 @@ class UplinkSettings(_Section):
     site: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$",
                       description="the site its key may write")
     send: Literal["everything", "flagged_traces"] = Field(
-        "everything", description="flagged_traces: every record, but raw traces only of flagged measurements "
-        "and baselines")
+        "everything", description="flagged_traces: every record, but raw traces only of flagged measurements, "
+        "baselines and those the centre asks for")
     batch_records: int = Field(50, ge=1, le=MAX_RECORDS_PER_BATCH, description="records per batch at most")
     batch_bytes: int = Field(4_000_000, ge=10_000, le=MAX_BODY_BYTES,
                              description="request body (before gzip) per batch at most; a bigger record goes alone")
     timeout_s: float = Field(30.0, gt=0, le=MAX_TIMEOUT_S, description="one request: connect, send, answer")
     idle_s: float = Field(2.0, gt=0, le=3600, description="how often an empty queue is looked at")
+    requests_every_s: float = Field(60.0, gt=0, le=DAY_S,
+                                    description="how often the centre is asked for its trace requests (traces on "
+                                    "demand: the gateway only talks outbound)")
     backoff_base_s: float = Field(1.0, gt=0, le=3600, description="first wait after a failed batch (full jitter)")
     backoff_cap_s: float = Field(300.0, gt=0, le=DAY_S, description="no wait is longer (unless Retry-After says so)")
     retry_after_max_s: float = Field(3600.0, gt=0, le=DAY_S, description="the centre's Retry-After honoured up to this")

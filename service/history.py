@@ -12,6 +12,7 @@ from db.models import DetectionRow, MeasurementKind, MeasurementRow, NodeRow, No
 from db.nodes import get_node
 from db.pagination import keyset_page
 from db.queries import detection_for, di_maps_for, latest_detection, measurements_page
+from db.trace_requests import traces_state
 from service import schemas
 
 
@@ -62,6 +63,7 @@ def measurement_detail(session: Session, measurement_id: int) -> schemas.Measure
         stored_at=row.stored_at,
         di_maps=[schemas.DiMapSummary.model_validate(m) for m in di_maps_for(session, measurement_id)],
         detection=None if detection is None else schemas.Detection.model_validate(detection),
+        traces=schemas.TracesState.model_validate(traces_state(session, row)),
     )
 
 

@@ -207,6 +207,25 @@ class MeasurementSummary(_Out):
     traces_available: bool = Field(description="false once retention pruned the raw traces")
 
 
+TracesStatusName = Literal["stored", "received", "requested", "held", "pruned", "at_gateway", "pruned_here"]
+
+
+class TracesState(_Out):
+    """Where a measurement's raw traces are, and the central operator's request for them if there is one."""
+
+    status: TracesStatusName = Field(
+        description="stored: here; received: here, after a request; requested: asked, the gateway has not answered; "
+        "held: the gateway holds them and has queued them for upload; pruned: the gateway answered it no longer "
+        "holds them; at_gateway: a gateway sent the measurement without them (its uplink policy), ask with POST "
+        ".../traces/request; pruned_here: retention here removed them and no gateway has them to send")
+    gateway_id: str | None = Field(description="the gateway that sent the measurement; null: this site's own")
+    measurement_uid: str | None = Field(description="the measurement's uid at its gateway")
+    requested_by: str | None = Field(description="the name of the key that asked for the traces")
+    requested_at: datetime | None
+    answered_at: datetime | None = Field(description="when the gateway answered held or pruned")
+    received_at: datetime | None
+
+
 class Measurement(MeasurementSummary):
     averaging: int
     fs_hz: float
@@ -218,6 +237,7 @@ class Measurement(MeasurementSummary):
     stored_at: datetime
     di_maps: list[DiMapSummary]
     detection: Detection | None
+    traces: TracesState
 
 
 class MeasurementPage(BaseModel):

@@ -14,10 +14,15 @@ Rules the models state and check:
   already holds. The gateway therefore sends in its own order: node, then per node its
   measurements with their maps, baselines, detections, state changes and alert events.
 * ``node`` records are the node's latest view, applied as an update (newest ``last_seen_at``
-  wins); every other kind is immutable once stored.
+  wins); every other kind is immutable once stored, with one exception: a measurement stored
+  without its traces takes them from a later record of the same uid that carries them (traces
+  on demand, :func:`resent_measurement`); nothing else of it changes.
 * traces and map pixels travel as the gateway stores them (``shuffle-zlib-v1`` compressed
   bytes, base64), with their SHA-256, which the centre checks; a measurement's traces may be
   omitted (``data`` null) when the gateway's uplink policy sends no traces for it.
+* traces on demand: the gateway polls ``TRACE_REQUESTS_PATH`` for the centre's requests for
+  traces it did not send (:class:`TraceRequests`), queues each measurement again with its
+  traces if it still holds them, and answers ``held`` or ``pruned`` (:class:`TraceAnswers`).
 """
 from __future__ import annotations
 
@@ -25,12 +30,16 @@ import base64
 import binascii
 import hashlib
 import uuid
+from dataclasses import dataclass
 from typing import Annotated, Any, Final, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 CONTRACT_VERSION: Final = 1
 INGEST_PATH = "/api/v1/ingest/batches"
+TRACE_REQUESTS_PATH = "/api/v1/ingest/trace-requests"  # GET ?gateway_id=: the requests to answer
+TRACE_ANSWERS_PATH = "/api/v1/ingest/trace-requests/answers"  # POST TraceAnswers
+MAX_TRACE_REQUESTS = 100  # requests in one answer of TRACE_REQUESTS_PATH, answers in one TraceAnswers
 MAX_RECORDS_PER_BATCH = 500
 # The request body after any gzip Content-Encoding is undone; the compressed body is bounded by it too.
 # ~100 measurements with traces (about 75 kB of base64 each for 8 channels x 12,000 samples).
@@ -265,3 +274,82 @@ class BadRecord(_Model):
     uid: str | None = None
     kind: str | None = None
     error: str
+
+
+# ------------------------------------------------------------------ traces on demand
+ResentOutcome = Literal["add_traces", "duplicate"]
+
+
+@dataclass(frozen=True)
+class StoredTraces:
+    """What the centre holds of a stored measurement's traces: their description, and whether the bytes are here."""
+
+    here: bool
+    codec: str
+    dtype: str
+    sha256: str
+    nbytes: int
+
+
+def resent_measurement(stored: StoredTraces, record: MeasurementRecord) -> ResentOutcome:
+    """A measurement record whose uid the centre holds already (pure): ``add_traces`` when it brings
+    the traces the stored record lacks, else ``duplicate`` (a replay: nothing changes).
+
+    Raises ValueError when it brings traces that are not the stored measurement's (another
+    checksum, length, dtype or codec): a stored measurement is immutable, its traces included.
+    """
+    traces = record.traces
+    if traces.data is None:
+        return "duplicate"
+    sent = (traces.codec, traces.dtype, traces.sha256, traces.nbytes)
+    if sent != (stored.codec, stored.dtype, stored.sha256, stored.nbytes):
+        raise ValueError(
+            f"traces (sha256 {traces.sha256[:12]}..., {traces.nbytes} bytes) are not the stored measurement's "
+            f"(sha256 {stored.sha256[:12]}..., {stored.nbytes} bytes): a stored measurement does not change"
+        )
+    return "duplicate" if stored.here else "add_traces"
+
+
+class TraceRequest(_Model):
+    """A central operator asks for the raw traces of one of the gateway's measurements."""
+
+    request_id: int
+    measurement_uid: Uid
+    requested_at: AwareDatetime
+
+
+class TraceRequests(_Model):
+    """The answer to ``GET TRACE_REQUESTS_PATH?gateway_id=``: the requests not answered yet, oldest first."""
+
+    gateway_id: GatewayId
+    items: list[TraceRequest] = Field(max_length=MAX_TRACE_REQUESTS)
+
+
+class TraceAnswer(_Model):
+    """``held``: the gateway holds the traces and has queued the measurement with them;
+    ``pruned``: it no longer holds them (retention removed them, or it never had the measurement)."""
+
+    request_id: int
+    measurement_uid: Uid
+    answer: Literal["held", "pruned"]
+
+
+class TraceAnswers(_Model):
+    """What a gateway POSTs to ``TRACE_ANSWERS_PATH``: its answers to the requests it was given."""
+
+    contract_version: Literal[1] = CONTRACT_VERSION
+    gateway_id: GatewayId
+    site: SiteName
+    answers: list[TraceAnswer] = Field(min_length=1, max_length=MAX_TRACE_REQUESTS)
+
+    @model_validator(mode="after")
+    def _uids_are_this_gateways(self) -> TraceAnswers:
+        prefix = f"{self.gateway_id}/measurement/"
+        for index, answer in enumerate(self.answers):
+            if not answer.measurement_uid.startswith(prefix) or len(answer.measurement_uid) == len(prefix):
+                raise ValueError(f"answer {index}: uid {answer.measurement_uid!r} must be {prefix}<local id>")
+        return self
+
+
+class TraceAnswersResult(_Model):
+    updated: int = Field(description="requests the answers moved on (a repeated or late answer changes nothing)")

@@ -14,6 +14,12 @@ centre refuses as malformed is tried ``refusals_max`` times, then set aside (kep
 logged) so it never holds its node's later records up; a batch too large (413) is halved. A
 401/403/404 (wrong key, site or URL) backs off the same way and is logged as an error.
 
+Traces on demand: every ``requests_every_s`` it also asks the centre for the trace requests of
+this gateway (``GET TRACE_REQUESTS_PATH``; a site behind NAT is never called), queues each
+measurement again with its traces if it still holds them (``answer_trace_request``) and answers
+``held`` or ``pruned``. An answer that does not reach the centre is given again on the next poll,
+and the measurement is not queued twice.
+
 The node workers never wait on it: measuring, flagging and alerting go on with the link down.
 """
 from __future__ import annotations
@@ -21,6 +27,7 @@ from __future__ import annotations
 import logging
 import random
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -31,12 +38,19 @@ import httpx
 from db.clock import utc_now
 from db.database import Database
 from db.errors import StorageError
-from db.uplink_queue import mark_sent, next_batch, note_refusal
+from db.uplink_queue import answer_trace_request, mark_sent, next_batch, note_refusal
 from gateway.config import UplinkSettings
 from gateway.uplink.batches import Batch, Outcome, build_batch, classify
 from gateway.uplink.records import wire_records
 from retry_timing.backoff import Backoff
-from uplink.contract import INGEST_PATH
+from uplink.contract import (
+    INGEST_PATH,
+    TRACE_ANSWERS_PATH,
+    TRACE_REQUESTS_PATH,
+    TraceAnswer,
+    TraceAnswers,
+    TraceRequests,
+)
 
 log = logging.getLogger("pipesentry.uplink")
 
@@ -61,6 +75,8 @@ class UplinkStats:
     consecutive_failures: int = 0
     last_stored_at: datetime | None = None
     last_error: str | None = None
+    trace_requests: int = 0  # the centre's trace requests answered (held or pruned)
+    last_requests_error: str | None = None  # why the last poll for trace requests failed (None: it did not)
 
 
 class Beats(Protocol):
@@ -92,6 +108,10 @@ class UplinkSender:
         self.limit = settings.batch_records  # halved after a 413 or a malformed batch, grows back after a stored one
         self.after_node: str | None = None  # the node the last batch started with: the next starts after it
         self.endpoint = settings.url.rstrip("/") + INGEST_PATH
+        self.requests_endpoint = settings.url.rstrip("/") + TRACE_REQUESTS_PATH
+        self.answers_endpoint = settings.url.rstrip("/") + TRACE_ANSWERS_PATH
+        self.monotonic = time.monotonic
+        self.requests_due_at = 0.0  # the first pass asks at once
         try:
             key = settings.read_key()
         except ValueError as exc:
@@ -116,6 +136,9 @@ class UplinkSender:
                 if self.heartbeats is not None:
                     self.heartbeats.beat(UPLINK)
                 try:
+                    if self.monotonic() >= self.requests_due_at:
+                        self.requests_due_at = self.monotonic() + self.settings.requests_every_s
+                        self.poll_requests()
                     wait_s = self.run_once()
                 except StorageError as exc:
                     log.error("uplink: storage unavailable, will retry in %.1f s: %s", self.settings.idle_s, exc)
@@ -143,6 +166,50 @@ class UplinkSender:
         self.after_node = batch.nodes[0] or ""
         outcome = self._post(batch)
         return self._record(batch, outcome)
+
+    def poll_requests(self) -> int:
+        """Ask the centre for its trace requests, act on them and answer; returns how many were answered.
+
+        A failure (link down, an older centre without the route) is logged and left for the next poll.
+        """
+        s = self.settings
+        try:
+            response = self.client.get(self.requests_endpoint, params={"gateway_id": s.gateway_id})
+            if response.status_code != 200:
+                return self._requests_failed(f"HTTP {response.status_code} {response.text[:200]}")
+            requests = TraceRequests.model_validate_json(response.content)
+        except httpx.HTTPError as exc:
+            return self._requests_failed(f"{type(exc).__name__}: {exc}")
+        except ValueError as exc:  # pydantic's ValidationError is one
+            return self._requests_failed(f"an answer that is not a list of trace requests: {exc}")
+        if not requests.items:
+            self.stats.last_requests_error = None
+            return 0
+        answers = []
+        with self.database.write() as session:
+            for item in requests.items:
+                answer = answer_trace_request(session, s.gateway_id, item.measurement_uid, now=self.clock())
+                answers.append(TraceAnswer(request_id=item.request_id, measurement_uid=item.measurement_uid,
+                                           answer=answer))
+        body = TraceAnswers(gateway_id=s.gateway_id, site=s.site, answers=answers).model_dump_json()
+        try:
+            response = self.client.post(self.answers_endpoint, content=body,
+                                        headers={"Content-Type": "application/json"})
+        except httpx.HTTPError as exc:
+            return self._requests_failed(f"answers not delivered: {type(exc).__name__}: {exc}")
+        if response.status_code != 200:
+            return self._requests_failed(f"answers not taken: HTTP {response.status_code} {response.text[:200]}")
+        self.stats.trace_requests += len(answers)
+        self.stats.last_requests_error = None
+        for given in answers:
+            log.info("uplink: the centre asked for the traces of %s: %s", given.measurement_uid, given.answer)
+        return len(answers)
+
+    def _requests_failed(self, why: str) -> int:
+        self.stats.last_requests_error = why
+        log.warning("uplink: trace requests not handled, asking again in %.0f s: %s",
+                    self.settings.requests_every_s, why)
+        return 0
 
     def _post(self, batch: Batch) -> Outcome:
         try:

@@ -1,25 +1,40 @@
-"""``POST /ingest/batches``: a gateway's records, stored whole or refused whole (gateway keys only)."""
+"""``POST /ingest/batches``: a gateway's records, stored whole or refused whole; ``/ingest/trace-requests``:
+the operators' requests for raw traces the gateway did not send, and its answers (gateway keys only)."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from db.ingest import IngestRefused
+from db.trace_requests import TraceAnswerRefused, answer_requests, pending_requests
 from service import ingest
 from service.deps import DatabaseDep, GatewayCaller
 from service.problems import (
+    CONFLICT,
     FORBIDDEN,
     PAYLOAD_TOO_LARGE,
     UNSUPPORTED_MEDIA_TYPE,
+    ApiProblem,
     ProblemKind,
     problem_response,
     problem_responses,
 )
-from uplink.contract import PROBLEM_BAD_RECORD, BadRecord, IngestBatch, IngestResult
+from uplink.contract import (
+    MAX_TRACE_REQUESTS,
+    PROBLEM_BAD_RECORD,
+    BadRecord,
+    GatewayId,
+    IngestBatch,
+    IngestResult,
+    TraceAnswers,
+    TraceAnswersResult,
+    TraceRequest,
+    TraceRequests,
+)
 
 router = APIRouter(prefix="/ingest", tags=["ingest"], responses=problem_responses(401, 403, 503))
 
@@ -74,6 +89,32 @@ async def ingest_batch(request: Request, caller: GatewayCaller, database: Databa
                             stale=outcome.stale)
     finally:
         gate.leave()
+
+
+@router.get("/trace-requests", summary="The trace requests this gateway has not answered, oldest first (gateway key)")
+def list_trace_requests(
+    caller: GatewayCaller, database: DatabaseDep,
+    gateway_id: Annotated[GatewayId, Query(description="the polling gateway's id (its records' uid prefix)")],
+) -> TraceRequests:
+    with database.session() as session:
+        rows = pending_requests(session, site=caller.site or "", gateway_id=gateway_id, limit=MAX_TRACE_REQUESTS)
+        items = [TraceRequest(request_id=r.id, measurement_uid=r.measurement_uid, requested_at=r.requested_at)
+                 for r in rows]
+    return TraceRequests(gateway_id=gateway_id, items=items)
+
+
+@router.post("/trace-requests/answers", responses=problem_responses(409, 422),
+             summary="A gateway's answers to trace requests: held (queued for upload) or pruned (gateway key)")
+def answer_trace_requests(body: TraceAnswers, caller: GatewayCaller, database: DatabaseDep) -> TraceAnswersResult:
+    if body.site != caller.site:
+        raise ApiProblem(FORBIDDEN, f"this key answers for site {caller.site!r}, the answers are for site {body.site!r}")
+    answers = [(a.request_id, a.measurement_uid, a.answer) for a in body.answers]
+    try:
+        with database.write() as session:
+            updated = answer_requests(session, answers, site=body.site, gateway_id=body.gateway_id)
+    except TraceAnswerRefused as exc:
+        raise ApiProblem(CONFLICT, str(exc)) from None
+    return TraceAnswersResult(updated=updated)
 
 
 def batch_schema_components() -> dict[str, Any]:

@@ -1,14 +1,17 @@
-"""One measurement: metadata, raw traces (JSON, .npz, CSV) and its DI maps (JSON, PNG)."""
+"""One measurement: metadata, raw traces (JSON, .npz, CSV) and its DI maps (JSON, PNG); at a central
+site, a request to its gateway for raw traces it did not send (operator)."""
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response, status
 
+from db.measurements import get_measurement
 from db.models import MapSource
+from db.trace_requests import TracesState, request_traces_of
 from service import history, maps, schemas, traces
-from service.deps import DatabaseDep, require_viewer
-from service.problems import problem_responses
+from service.deps import DatabaseDep, Operator, require_viewer
+from service.problems import TRACES_PRUNED, ApiProblem, problem_responses
 from service.routes.parameters import MeasurementId
 
 router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=[Depends(require_viewer)],
@@ -81,3 +84,30 @@ def get_di_map_png(measurement_id: MeasurementId, source: MapSource, request: Re
 def get_di_map(measurement_id: MeasurementId, source: MapSource, database: DatabaseDep) -> schemas.DiMap:
     with database.session() as session:
         return maps.map_json(session, measurement_id, source)
+
+
+@router.post(
+    "/{measurement_id}/traces/request", status_code=status.HTTP_202_ACCEPTED,
+    summary="Ask the measurement's gateway for the raw traces it did not send (operator, central site)",
+    responses={200: {"description": "the traces are here already: nothing to ask",
+                     "model": schemas.TracesState}, **PRUNED},
+)
+def request_traces(measurement_id: MeasurementId, caller: Operator, database: DatabaseDep,
+                   response: Response) -> schemas.TracesState:
+    """202: asked (or asked already and not yet in): the gateway polls for it, answers and sends them;
+    ``GET /measurements/{id}`` shows ``traces.status`` move to held, then received (or pruned)."""
+    with database.write() as session:
+        outcome, state = request_traces_of(session, get_measurement(session, measurement_id), who=caller.name)
+    if outcome == "gone":
+        raise ApiProblem(TRACES_PRUNED, _gone(measurement_id, state))
+    if outcome == "here":
+        response.status_code = status.HTTP_200_OK
+    return schemas.TracesState.model_validate(state)
+
+
+def _gone(measurement_id: int, state: TracesState) -> str:
+    if state.status == "pruned":
+        when = state.answered_at.isoformat() if state.answered_at is not None else "?"
+        return (f"gateway {state.gateway_id!r} answered at {when} that it no longer holds the raw traces of "
+                f"measurement {measurement_id} (retention removed them)")
+    return f"the raw traces of measurement {measurement_id} were removed by retention here; no gateway has them to send"

@@ -22,6 +22,7 @@ REQUIRED_ROLE = {
     ("get", "/api/v1/measurements/{measurement_id}/traces"): "viewer",
     ("get", "/api/v1/measurements/{measurement_id}/traces.npz"): "viewer",
     ("get", "/api/v1/measurements/{measurement_id}/traces.csv"): "viewer",
+    ("post", "/api/v1/measurements/{measurement_id}/traces/request"): "operator",  # asks a gateway to upload
     ("get", "/api/v1/measurements/{measurement_id}/di-maps"): "viewer",
     ("get", "/api/v1/measurements/{measurement_id}/di-maps/{source}"): "viewer",
     ("get", "/api/v1/measurements/{measurement_id}/di-maps/{source}.png"): "viewer",
@@ -36,6 +37,8 @@ REQUIRED_ROLE = {
     ("post", "/api/v1/keys"): "admin",
     ("delete", "/api/v1/keys/{key_id}"): "admin",
     ("post", "/api/v1/ingest/batches"): "gateway",
+    ("get", "/api/v1/ingest/trace-requests"): "gateway",  # its own site's only
+    ("post", "/api/v1/ingest/trace-requests/answers"): "gateway",
     ("get", "/metrics"): "viewer",
     ("get", "/healthz"): None,
     ("get", "/readyz"): None,
