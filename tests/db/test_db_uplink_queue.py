@@ -16,6 +16,7 @@ from db.records import AcquisitionInput, CycleRecord, DetectionInput, EventInput
 from db.retention import prune_traces
 from db.uplink_queue import (
     QueuePolicy,
+    answer_trace_request,
     mark_sent,
     next_batch,
     note_refusal,
@@ -216,4 +217,29 @@ def test_a_database_that_predates_the_uplink_sends_the_nodes_earlier_baselines_f
     assert [(kind, ref, traces) for kind, _n, ref, traces in queued(db)] == [
         ("node", "node-a", False), ("measurement", str(base_id), True), ("baseline", "1", False)]
     assert str(monitor_id) not in {ref for _k, _n, ref, _t in queued(db)}  # the rest of the history stays here
+    db.dispose()
+
+
+def test_a_trace_request_queues_the_measurement_again_with_its_traces_once_and_never_pruned_ones(sqlite_url):
+    db = open_database(sqlite_url)
+    db.queue_uplink(QueuePolicy("flagged_traces"))
+    with db.write() as session:
+        upsert_node(session, node_info(), seen_at=T0)
+        calm, older = (store_cycle(session, "node-a", CycleRecord(
+            acquisition(seed), MeasurementKind.MONITOR, {},
+            detection=DetectionInput(peak_di=0.1, threshold=0.3, state=NodeState.OK))).measurement_id for seed in (2, 1))
+    with db.write() as session:
+        mark_sent(session, [row.id for row in session.scalars(select(UplinkRow))])
+    assert prune_traces(db.write, timedelta(minutes=90), 10, now=T0 + minutes(92)) == 1  # the older one only
+
+    with db.write() as session:
+        assert answer_trace_request(session, "gw-a", f"gw-a/measurement/{calm}") == "held"
+        assert answer_trace_request(session, "gw-a", f"gw-a/measurement/{calm}") == "held"  # the answer was lost
+        assert answer_trace_request(session, "gw-a", f"gw-a/measurement/{older}") == "pruned"
+        assert answer_trace_request(session, "gw-a", "gw-a/measurement/99999") == "pruned"
+        assert answer_trace_request(session, "gw-a", f"gw-b/measurement/{calm}") == "pruned"  # not this gateway's
+    assert queued(db)[-1:] == [("measurement", "node-a", str(calm), True)]
+    assert sum(1 for row in queued(db) if row[2] == str(calm) and row[0] == "measurement") == 2  # once more
+    # Until the centre has them, retention keeps them.
+    assert prune_traces(db.write, timedelta(0), 10, now=T0 + minutes(500)) == 0
     db.dispose()

@@ -17,7 +17,10 @@ from uplink.contract import (
     IngestBatch,
     MeasurementRecord,
     NodeRecord,
+    StoredTraces,
+    TraceAnswers,
     record_uid,
+    resent_measurement,
 )
 
 T0 = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
@@ -109,3 +112,37 @@ def test_a_batch_is_bounded_in_records():
     many = [{**node(node_id=f"n{i}"), "uid": f"gw-a/node/n{i}"} for i in range(MAX_RECORDS_PER_BATCH + 1)]
     with pytest.raises(ValidationError, match=f"at most {MAX_RECORDS_PER_BATCH}"):
         IngestBatch.model_validate(batch(*many))
+
+
+# ------------------------------------------------------------------ traces on demand
+def stored_traces(*, here: bool, sha256: str = hashlib.sha256(STORED).hexdigest()) -> StoredTraces:
+    return StoredTraces(here=here, codec="shuffle-zlib-v1", dtype="<i2", sha256=sha256, nbytes=len(STORED))
+
+
+def test_a_measurement_resent_with_the_traces_the_centre_lacks_adds_them():
+    record = MeasurementRecord.model_validate(measurement())
+    assert resent_measurement(stored_traces(here=False), record) == "add_traces"
+
+
+@pytest.mark.parametrize(("here", "data"), [(True, STORED), (False, None), (True, None)])
+def test_a_measurement_resent_otherwise_is_a_duplicate(here, data):
+    record = MeasurementRecord.model_validate(measurement(data=data))
+    assert resent_measurement(stored_traces(here=here), record) == "duplicate"
+
+
+@pytest.mark.parametrize("here", [True, False])
+def test_traces_that_are_not_the_stored_measurements_are_refused_even_on_a_record_without_them(here):
+    record = MeasurementRecord.model_validate(measurement())
+    with pytest.raises(ValueError, match="a stored measurement does not change"):
+        resent_measurement(stored_traces(here=here, sha256="0" * 64), record)
+
+
+def test_trace_answers_name_only_the_gateways_own_measurements():
+    answer = {"request_id": 4, "measurement_uid": "gw-a/measurement/17", "answer": "held"}
+    assert TraceAnswers(gateway_id="gw-a", site="north", answers=[answer]).answers[0].answer == "held"
+    with pytest.raises(ValidationError, match="must be gw-b/measurement/<local id>"):
+        TraceAnswers(gateway_id="gw-b", site="north", answers=[answer])
+    with pytest.raises(ValidationError):
+        TraceAnswers(gateway_id="gw-a", site="north", answers=[{**answer, "answer": "maybe"}])
+    with pytest.raises(ValidationError):
+        TraceAnswers(gateway_id="gw-a", site="north", answers=[])
