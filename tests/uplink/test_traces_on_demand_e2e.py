@@ -1,0 +1,119 @@
+"""Raw traces on demand (issue 17): a gateway under ``send = "flagged_traces"`` sends a calm measurement
+without its traces; a central operator asks for them, the gateway (which only talks outbound) hears
+of it on its next poll and sends them, and the centre adds them to the record it holds, byte for
+byte the gateway's. Traces the gateway's retention removed are reported as such.
+
+The real central service (uvicorn on 127.0.0.1 over a SQLite file), a real gateway process polling a
+mock node over a pty, the gateway's real retention.
+"""
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+
+import httpx
+import pytest
+from sqlalchemy.orm import undefer
+
+from db.api_keys import create_api_key
+from db.database import open_database
+from db.models import MeasurementRow, Role
+from db.retention import prune_traces
+from tests.support.api_fixtures import assert_problem
+from tests.support.central_site import Centre, serve_centre
+from tests.support.process_harness import (
+    gateway_config,
+    gateway_node,
+    scenario_node,
+    start_gateway,
+    start_mock_nodes,
+    wait_for_links,
+    wait_until,
+)
+
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
+
+GATEWAY, SITE, NODE = "gw-n1", "north", "pipe-1"
+STEP_TIMEOUT_S = 30.0
+
+
+def traces_of(centre: Centre, measurement_id: int) -> dict:
+    response = centre.get(f"/measurements/{measurement_id}")
+    assert response.status_code == 200, response.text
+    return response.json()["traces"]
+
+
+def sent_without_traces(centre: Centre, count: int) -> list[int] | None:
+    """``count`` of the node's measurements at the centre whose traces stayed at the gateway, oldest first."""
+    page = centre.get(f"/nodes/{NODE}/measurements", limit=100, order="asc")
+    if page.status_code != 200:
+        return None
+    ids = [m["id"] for m in page.json()["items"] if not m["traces_available"]]
+    return ids[:count] if len(ids) >= count else None
+
+
+def ask(centre: Centre, key: str, measurement_id: int) -> httpx.Response:
+    return httpx.post(f"{centre.url}/api/v1/measurements/{measurement_id}/traces/request", timeout=10,
+                      headers={"Authorization": f"Bearer {key}"})
+
+
+def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_they_are_gone(
+    tmp_path: Path, sqlite_url: str,
+):
+    with serve_centre(sqlite_url) as centre:
+        with centre.database.write() as session:
+            operator = create_api_key(session, name="operator-ana", role=Role.OPERATOR)[1]
+        links = tmp_path / "links"
+        scenario = tmp_path / "scenario.toml"
+        scenario.write_text(scenario_node(NODE, 710))
+        mock = start_mock_nodes(scenario, links, tmp_path)
+        gateway_db = tmp_path / "gateway.db"
+        config = tmp_path / "gateway.toml"
+        config.write_text(gateway_config(
+            gateway_db, [gateway_node(NODE, links, interval_s=0.3)],
+            uplink={"url": centre.url, "key": centre.north, "gateway_id": GATEWAY, "site": SITE,
+                    "send": "flagged_traces", "idle_s": 0.2, "requests_every_s": 0.3, "timeout_s": 10.0,
+                    "backoff_base_s": 0.2, "backoff_cap_s": 1.0},
+        ))
+        gateway = None
+        edge = None
+        try:
+            wait_for_links(links, [NODE], mock)
+            gateway = start_gateway(config, tmp_path)
+            wanted, gone = wait_until(lambda: sent_without_traces(centre, 2), STEP_TIMEOUT_S, 0.3,
+                                      what="two calm measurements at the centre without their traces")
+            assert traces_of(centre, wanted)["status"] == "at_gateway"
+            assert ask(centre, centre.viewer, wanted).status_code == 403  # a viewer reads, an operator asks
+
+            asked = ask(centre, operator, wanted)
+            assert asked.status_code == 202, asked.text
+            assert asked.json()["status"] == "requested" and asked.json()["requested_by"] == "operator-ana"
+            wait_until(lambda: traces_of(centre, wanted)["status"] == "received", STEP_TIMEOUT_S, 0.2,
+                       what="the requested traces at the centre")
+            state = traces_of(centre, wanted)
+            assert state["gateway_id"] == GATEWAY and state["answered_at"] and state["received_at"]
+            local_id = int(state["measurement_uid"].rsplit("/", 1)[1])
+            edge = open_database(f"sqlite:///{gateway_db}", upgrade=False)
+            with edge.session() as session, centre.database.session() as central:
+                at_gateway = session.get(MeasurementRow, local_id, options=[undefer(MeasurementRow.traces_blob)])
+                here = central.get(MeasurementRow, wanted, options=[undefer(MeasurementRow.traces_blob)])
+                assert at_gateway is not None and here is not None and at_gateway.traces_blob is not None
+                assert here.traces_blob == at_gateway.traces_blob
+                assert here.traces_sha256 == at_gateway.traces_sha256
+            assert centre.get(f"/measurements/{wanted}/traces", units="codes").status_code == 200
+            assert ask(centre, operator, wanted).status_code == 200  # here now: nothing to ask
+
+            # The gateway's retention removes the other calm measurement's traces; asking for them says so.
+            assert prune_traces(edge.write, timedelta(0), 100) >= 1
+            assert ask(centre, operator, gone).status_code == 202
+            wait_until(lambda: traces_of(centre, gone)["status"] == "pruned", STEP_TIMEOUT_S, 0.2,
+                       what="the gateway's answer that the traces are gone")
+            body = assert_problem(ask(centre, operator, gone), 410, "traces-pruned")
+            assert f"gateway '{GATEWAY}'" in body["detail"] and "no longer holds" in body["detail"]
+            assert centre.get(f"/measurements/{gone}/traces").status_code == 410
+        finally:
+            if edge is not None:
+                edge.dispose()
+            for proc in (gateway, mock):
+                if proc is not None:
+                    proc.close()
