@@ -125,6 +125,7 @@ class SinkWorker:
         heartbeats: Beats | None = None,
         rng: random.Random | None = None,
         clock: Callable[[], datetime] = utc_now,
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
         self.alerting = alerting
         self.sink = sink
@@ -134,6 +135,11 @@ class SinkWorker:
         self.heartbeats = heartbeats
         self.rng = rng or random.Random()
         self.clock = clock
+        self.monotonic = monotonic
+        # Retries this process scheduled, by delivery id: when their wait ends on the monotonic
+        # clock. The stored wall-clock time serves after a restart; a wall-clock step back must
+        # not hold a retry back (issue 15: schedules measure intervals on a monotonic clock).
+        self.retry_deadlines: dict[int, float] = {}
         self.disabled = False
         self.stats = SinkStats()
         self.thread = threading.Thread(target=self.run, name=f"alerts-{sink.name}", daemon=True)
@@ -162,12 +168,16 @@ class SinkWorker:
         with self.database.session() as session:
             heads = pending_heads(session, self.sink.name)
         now = self.clock()
+        live = {item.delivery_id for item in heads}  # delivered or dead elsewhere: forget its deadline
+        self.retry_deadlines = {k: v for k, v in self.retry_deadlines.items() if k in live}
         attempted = 0
         for item in heads:
             if self.stop.is_set() or self.disabled or attempted >= MAX_ATTEMPTS_PER_PASS:
                 break
             if is_due(item, now):
                 attempted += self.attempt(item)
+            elif self._overdue(item, now):
+                attempted += self.attempt(item, overdue=True)
         if not self.disabled:
             self.transport.maintain()
         if attempted:
@@ -178,11 +188,24 @@ class SinkWorker:
             wait_s = min(wait_s, max(0.0, (min(upcoming) - self.clock()).total_seconds()))
         return wait_s
 
-    def attempt(self, item: OutboxEvent) -> int:
+    def horizon_s(self) -> float:
+        """No wait this sink sets is longer: a stored retry time further ahead is a clock step."""
+        return max(self.sink.backoff_cap_s, self.sink.retry_after_max_s, lease_s(self.sink)) + LEASE_MARGIN_S
+
+    def _overdue(self, item: OutboxEvent, now: datetime) -> bool:
+        """Not due by its stored time, yet due: its wait ended on this process's monotonic clock,
+        or the stored time lies beyond any wait we set (the wall clock went back)."""
+        deadline = self.retry_deadlines.get(item.delivery_id)
+        if deadline is not None and self.monotonic() >= deadline:
+            return True
+        return is_due(item, now, horizon_s=self.horizon_s())
+
+    def attempt(self, item: OutboxEvent, *, overdue: bool = False) -> int:
         """Claim, send, record. Returns 1 if an attempt was made, 0 if the claim was lost."""
         now = self.clock()
+        self.retry_deadlines.pop(item.delivery_id, None)
         with self.database.write() as session:
-            if not claim(session, item, now=now, lease_s=lease_s(self.sink)):
+            if not claim(session, item, now=now, lease_s=lease_s(self.sink), overdue=overdue):
                 return 0
         tries = item.attempts + 1
         self.stats.attempts += 1
@@ -222,6 +245,7 @@ class SinkWorker:
                 retry_after_max_s=self.sink.retry_after_max_s,
             )
             retry_at = now + timedelta(seconds=delay_s)
+            self.retry_deadlines[item.delivery_id] = self.monotonic() + delay_s
             log.warning("alerts %s: try %d/%d of %s %s failed, retrying in %.1f s: %s", self.sink.name, tries,
                         self.sink.max_attempts, item.kind, item.event_id, delay_s, error)
         with self.database.write() as session:
@@ -291,6 +315,7 @@ class FleetWatcher:
         stop: threading.Event,
         heartbeats: Beats | None = None,
         clock: Callable[[], datetime] = utc_now,
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
         self.alerting = alerting
         self.database = database

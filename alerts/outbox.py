@@ -69,23 +69,31 @@ def pending_heads(session: Session, sink: str) -> list[OutboxEvent]:
     )
 
 
-def is_due(item: OutboxEvent, now: datetime) -> bool:
-    return item.next_attempt_at is None or item.next_attempt_at <= now
+def is_due(item: OutboxEvent, now: datetime, *, horizon_s: float | None = None) -> bool:
+    """Its time has come; or (``horizon_s``) its time lies further ahead than any wait the
+    outbox sets: the wall clock was stepped back after the time was set, so it is due now."""
+    at = item.next_attempt_at
+    if at is None or at <= now:
+        return True
+    return horizon_s is not None and at > now + timedelta(seconds=horizon_s)
 
 
-def claim(session: Session, item: OutboxEvent, *, now: datetime, lease_s: float) -> bool:
+def claim(session: Session, item: OutboxEvent, *, now: datetime, lease_s: float, overdue: bool = False) -> bool:
     """Take ``item`` for one attempt (compare-and-set); False if it changed since it was read.
 
+    ``overdue``: the caller knows it is due whatever its stored time says (a retry whose wait
+    has passed on the monotonic clock, or a time beyond the horizon after a clock step).
     Commit the transaction before sending: the lease and the attempt count must be durable
     first, so a crash during the send neither loses the delivery nor retries it at once.
     """
+    due = [] if overdue else [or_(DeliveryRow.next_attempt_at.is_(None), DeliveryRow.next_attempt_at <= now)]
     result = session.execute(
         update(DeliveryRow)
         .where(
             DeliveryRow.id == item.delivery_id,
             DeliveryRow.status == DeliveryStatus.PENDING,
             DeliveryRow.attempts == item.attempts,
-            or_(DeliveryRow.next_attempt_at.is_(None), DeliveryRow.next_attempt_at <= now),
+            *due,
         )
         .values(attempts=DeliveryRow.attempts + 1, next_attempt_at=now + timedelta(seconds=lease_s))
         .execution_options(synchronize_session=False)
