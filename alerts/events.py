@@ -224,8 +224,10 @@ def node_offline_event(
     last_seen_at: datetime,
     now: datetime | None = None,
     after: uuid.UUID | None = None,
+    never_seen: bool = False,
 ) -> EventInput:
-    """``node_offline`` (warning): the node has not answered since ``last_seen_at``.
+    """``node_offline`` (warning): the node has not answered since ``last_seen_at``; ``never_seen``:
+    it has never answered, and ``last_seen_at`` is when the gateway started watching it.
 
     One outage (one ``last_seen_at``) gives one event id, however often it is checked. ``after``:
     the end of an earlier offline alarm with the same ``last_seen_at`` (ended by a decommissioning:
@@ -235,11 +237,14 @@ def node_offline_event(
     fact = (node_id, last_seen_at.isoformat()) if after is None else (node_id, last_seen_at.isoformat(), after)
     eid = event_id(EventKind.NODE_OFFLINE, *fact)
     offline_s = max(0.0, (now - last_seen_at).total_seconds())
+    since = f"{last_seen_at:%Y-%m-%d %H:%M:%S} UTC"
+    summary = (f"node {node_id} offline: never answered, watched for {_duration(offline_s)} (since {since})"
+               if never_seen else f"node {node_id} offline: not seen for {_duration(offline_s)} (since {since})")
     payload = NodeOfflinePayload(
         **_common(settings, eid, EventKind.NODE_OFFLINE, node_id, Severity.WARNING, Severity.WARNING, now),
-        summary=f"node {node_id} offline: not seen for {_duration(offline_s)} (since {last_seen_at:%Y-%m-%d %H:%M:%S} UTC)",
-        state=NodeState(state), previous_state=NodeState(state), online=False,
+        summary=summary, state=NodeState(state), previous_state=NodeState(state), online=False,
         last_seen_at=last_seen_at, offline_for_s=round(offline_s, 1), alarm="offline", alarm_id=eid,
+        never_seen=True if never_seen else None,
     )
     return _event(settings, payload, Severity.WARNING)
 
@@ -254,20 +259,27 @@ def node_online_event(
     seen_at: datetime,
     ended_by: EndedBy | None = None,
     sinks: tuple[str, ...] | None = None,
+    first_seen: bool = False,
 ) -> EventInput:
-    """``node_online`` (info, routed like the offline alert it ends): the node answers again — or,
-    ``ended_by`` a decommissioning, its offline alarm ends with it out of service (still not online)."""
+    """``node_online`` (info, routed like the offline alert it ends): the node answers again (``first_seen``:
+    for the first time, its node_offline said never_seen) — or, ``ended_by`` a decommissioning, its offline
+    alarm ends with it out of service (still not online)."""
     eid = event_id(EventKind.NODE_ONLINE, offline_event_id)
     down_s = max(0.0, (seen_at - offline_since).total_seconds())
     ended_by = ended_by or EndedBy(cause="recovery")
     recovered = ended_by.cause == "recovery"
-    summary = (f"node {node_id} back online after {_duration(down_s)}, state {state}" if recovered
-               else f"node {node_id} offline alarm ended after {_duration(down_s)}{end_text(ended_by)}")
+    first_seen = first_seen and recovered
+    if first_seen:
+        summary = f"node {node_id} answered for the first time, after {_duration(down_s)} watched, state {state}"
+    elif recovered:
+        summary = f"node {node_id} back online after {_duration(down_s)}, state {state}"
+    else:
+        summary = f"node {node_id} offline alarm ended after {_duration(down_s)}{end_text(ended_by)}"
     payload = NodeOnlinePayload(
         **_common(settings, eid, EventKind.NODE_ONLINE, node_id, Severity.INFO, Severity.WARNING, seen_at),
         summary=summary, state=NodeState(state), previous_state=NodeState(state), online=recovered,
         offline_event_id=offline_event_id, offline_since=offline_since, offline_for_s=round(down_s, 1),
-        alarm="offline", alarm_id=offline_event_id, ended_by=ended_by,
+        alarm="offline", alarm_id=offline_event_id, ended_by=ended_by, first_seen=True if first_seen else None,
     )
     return _event(settings, payload, Severity.WARNING, sinks)
 

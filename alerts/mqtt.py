@@ -139,7 +139,9 @@ def node_state_document(
         "state": node.state.value,
         "online": bool(node.online) and decommissioned is None,
         "decommissioned": decommissioned,
-        "last_seen_at": node.last_seen_at.isoformat(),
+        # As node_offline carries it: never seen, since when the gateway watches it (and never_seen true).
+        "last_seen_at": (node.watched_since if node.last_seen_at is None else node.last_seen_at).isoformat(),
+        **({"never_seen": True} if node.never_seen else {}),
         "latest": reading,
         "alarms": [_alarm_summary(a) for a in alarms.all()],
         "faulty_receivers": sorted(a.rx_index for a in alarms.sensor_faults if a.rx_index is not None),

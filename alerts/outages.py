@@ -1,9 +1,10 @@
 """Node reachability alerts: node_offline after ``offline_after_s`` without an answer, node_online after.
 
-Everything is read from the database (``nodes.last_seen_at`` and the outage events already
-in the outbox), so the check is idempotent and survives restarts: an outage keeps its one
-event id however often it is checked. Right after the gateway starts, nodes are given
-``offline_after_s`` to answer before the downtime of the gateway itself counts against them.
+Everything is read from the database (``nodes.last_seen_at``, or ``nodes.watched_since`` for a
+node that never answered, and the outage events already in the outbox), so the check is
+idempotent and survives restarts: an outage keeps its one event id however often it is checked.
+Right after the gateway starts, nodes are given ``offline_after_s`` to answer before the
+downtime of the gateway itself counts against them.
 """
 from __future__ import annotations
 
@@ -34,16 +35,16 @@ def check_outages(
         latest = _latest_outage_event(session, node.node_id)
         open_outage = latest if latest is not None and latest.kind == EventKind.NODE_OFFLINE else None
         if open_outage is None:
-            reference = max(node.last_seen_at, watching_since)
-            if (now - reference).total_seconds() <= settings.offline_after_s:
+            silent_since = silent_since_of(node.last_seen_at, node.watched_since)
+            if not offline_due(silent_since, watching_since, now=now, offline_after_s=settings.offline_after_s):
                 continue
             event = node_offline_event(
-                settings, node_id=node.node_id, state=node.state.value, last_seen_at=node.last_seen_at, now=now,
-                after=_ended_by_decommissioning(latest, node.last_seen_at),
+                settings, node_id=node.node_id, state=node.state.value, last_seen_at=silent_since, now=now,
+                after=_ended_by_decommissioning(latest, silent_since), never_seen=node.never_seen,
             )
         else:
             offline_since = datetime.fromisoformat(open_outage.payload["last_seen_at"])
-            if node.last_seen_at <= offline_since:
+            if node.last_seen_at is None or node.last_seen_at <= offline_since:
                 continue
             event = node_online_event(
                 settings,
@@ -52,10 +53,22 @@ def check_outages(
                 offline_event_id=open_outage.id,
                 offline_since=offline_since,
                 seen_at=node.last_seen_at,
+                first_seen=bool(open_outage.payload.get("never_seen")),
             )
         if add_event_once(session, event, node_id=node.node_id, now=now):
             added.append(event)
     return added
+
+
+def silent_since_of(last_seen_at: datetime | None, watched_since: datetime) -> datetime:
+    """Since when the node has been silent: its last answer, or, never seen, since it was watched (pure)."""
+    return watched_since if last_seen_at is None else last_seen_at
+
+
+def offline_due(silent_since: datetime, watching_since: datetime, *, now: datetime, offline_after_s: float) -> bool:
+    """Whether a node silent since ``silent_since`` is offline at ``now`` (pure): silent for longer than
+    ``offline_after_s``, counted from the gateway's start at the earliest (``watching_since``)."""
+    return (now - max(silent_since, watching_since)).total_seconds() > offline_after_s
 
 
 def _latest_outage_event(session: Session, node_id: str) -> EventRow | None:

@@ -182,23 +182,32 @@ class StateChangePayload(EventPayload):
 
 
 class NodeOfflinePayload(EventPayload):
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"never_seen"})
+
     kind: Literal["node_offline"]
     node_id: str
-    last_seen_at: Instant
+    last_seen_at: Instant = Field(description="when the node last answered; never_seen: when the gateway started "
+                                              "watching it (registered from its configuration)")
     offline_for_s: float
     alarm: Literal["offline"]
     alarm_id: AlarmId
+    never_seen: Literal[True] | None = Field(None, description="true: the node has never answered (left out "
+                                                               "otherwise)")
 
 
 class NodeOnlinePayload(EventPayload):
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"first_seen"})
+
     kind: Literal["node_online"]
     node_id: str
     offline_event_id: uuid.UUID = Field(description="the node_offline event this one ends")
-    offline_since: Instant
+    offline_since: Instant = Field(description="that event's last_seen_at")
     offline_for_s: float
     alarm: Literal["offline"]
     alarm_id: AlarmId
     ended_by: EndedBy
+    first_seen: Literal[True] | None = Field(None, description="true: the node answered for the first time (its "
+                                                               "node_offline said never_seen; left out otherwise)")
 
 
 class BaselineChangedPayload(EventPayload):

@@ -136,10 +136,10 @@ class _Batch:
         if node is None:
             self.session.add(NodeRow(node_id=record.node_id, port_url=f"uplink:{self.batch.gateway_id}",
                                      error_counters={}, site=self.batch.site, gateway_id=self.batch.gateway_id,
-                                     **values))
+                                     watched_since=record.first_seen_at, **values))
             return "accepted"
         self.check_owner(node)
-        if record.last_seen_at < node.last_seen_at:
+        if node.last_seen_at is not None and record.last_seen_at < node.last_seen_at:
             return "stale"
         if all(getattr(node, name) == value for name, value in values.items()):
             return "duplicate"

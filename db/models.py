@@ -124,21 +124,28 @@ class Base(DeclarativeBase):
 
 
 class NodeRow(Base):
-    """One FPGA node as last reported by its INFO message, plus the gateway's view of it."""
+    """One FPGA node as last reported by its INFO message, plus the gateway's view of it.
+
+    A configured node is registered when the gateway starts (revision 0009), before it answers:
+    until its first INFO what INFO tells is unknown (NULL) and it was never seen
+    (``last_seen_at`` NULL, :attr:`never_seen`); ``watched_since`` is when it was registered.
+    """
 
     __tablename__ = "nodes"
     __table_args__ = (Index("ix_nodes_site_gateway_id", "site", "gateway_id"),)
 
     node_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     port_url: Mapped[str] = mapped_column(String(255))
-    firmware: Mapped[str] = mapped_column(String(64))
-    protocol_version: Mapped[int] = mapped_column(Integer)
-    n_channels: Mapped[int] = mapped_column(Integer)
-    fs_hz: Mapped[float] = mapped_column(Float)
+    # From INFO; NULL until the node's first INFO (revision 0009).
+    firmware: Mapped[str | None] = mapped_column(String(64))
+    protocol_version: Mapped[int | None] = mapped_column(Integer)
+    n_channels: Mapped[int | None] = mapped_column(Integer)
+    fs_hz: Mapped[float | None] = mapped_column(Float)
     # ring angles, tx_rx_distance_mm, circumference_mm, pipe_length_mm, tx_axial_mm
-    geometry: Mapped[dict[str, Any]]
-    first_seen_at: Mapped[datetime]
-    last_seen_at: Mapped[datetime]
+    geometry: Mapped[dict[str, Any] | None] = mapped_column(json_type())
+    watched_since: Mapped[datetime]  # registered: at the gateway's start, or at its first INFO (revision 0009)
+    first_seen_at: Mapped[datetime | None]
+    last_seen_at: Mapped[datetime | None]  # NULL: never answered
     online: Mapped[bool] = mapped_column(Boolean, server_default=false())
     error_counters: Mapped[dict[str, Any]]
     state: Mapped[NodeState] = mapped_column(_enum(NodeState, "node_state"))
@@ -165,6 +172,11 @@ class NodeRow(Base):
     # At the central site (revision 0006): where the node reports from; NULL on a gateway's own database.
     site: Mapped[str | None] = mapped_column(String(64))
     gateway_id: Mapped[str | None] = mapped_column(String(64))
+
+    @property
+    def never_seen(self) -> bool:
+        """Registered from the configuration, and has not answered yet."""
+        return self.last_seen_at is None
 
 
 class MeasurementRow(Base):

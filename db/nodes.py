@@ -93,22 +93,42 @@ def is_decommissioned(session: Session, node_id: str) -> bool:
     return decommissioned_at is not None
 
 
+def register_configured_node(session: Session, node_id: str, *, port_url: str, now: datetime | None = None) -> bool:
+    """Register a node of the gateway's configuration that this database does not know yet: watched
+    from ``now``, never seen, what INFO tells unknown until it answers; True if it was new.
+
+    Nothing is queued for the uplink: the centre is told of a node by its first INFO (upsert_node).
+    A known node is left as it is (its port, as last found, comes with its INFO).
+    """
+    if session.get(NodeRow, node_id) is not None:
+        return False
+    session.add(NodeRow(
+        node_id=node_id, port_url=port_url, watched_since=now or utc_now(), online=False, error_counters={},
+        state=NodeState.COMMISSIONING,
+    ))
+    session.flush()
+    return True
+
+
 def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = None) -> NodeRow:
     """Create the node or refresh its configuration from a new INFO reply; marks it online.
 
     State, DI results and error counters of a known node are kept: a reboot does not make
-    a damaged pipe healthy. A session that queues for the uplink queues the node's record.
+    a damaged pipe healthy; a node registered from the configuration and never seen is seen
+    first now. A session that queues for the uplink queues the node's record.
     """
     seen_at = seen_at or utc_now()
     node = session.get(NodeRow, info.node_id)
     if node is None:
         node = NodeRow(
             node_id=info.node_id,
-            first_seen_at=seen_at,
+            watched_since=seen_at,
             error_counters={},
             state=NodeState.COMMISSIONING,
         )
         session.add(node)
+    if node.first_seen_at is None:
+        node.first_seen_at = seen_at
     node.port_url = info.port_url
     node.firmware = info.firmware
     node.protocol_version = info.protocol_version

@@ -56,6 +56,10 @@ def every_kind_of_event():
         node_offline_event(SETTINGS, node_id="n-1", state="damage", last_seen_at=T0, now=T0 + timedelta(hours=3)),
         node_online_event(SETTINGS, node_id="n-1", state="ok", offline_event_id=uuid.UUID(int=5), offline_since=T0,
                           seen_at=T0 + timedelta(seconds=75)),
+        node_offline_event(SETTINGS, node_id="n-2", state="commissioning", last_seen_at=T0,
+                           now=T0 + timedelta(minutes=10), never_seen=True),
+        node_online_event(SETTINGS, node_id="n-2", state="commissioning", offline_event_id=uuid.UUID(int=6),
+                          offline_since=T0, seen_at=T0 + timedelta(minutes=12), first_seen=True),
         baseline_changed_event(SETTINGS, node_id="n-1", baseline_id=3, measurement_id=9, previous_measurement_id=None,
                                created_by="operator:kim", reason="re-baselined", state="ok", occurred_at=T0),
         node_decommissioned_event(SETTINGS, node_id="n-1", state="ok", decommissioned_at=T0, by="admin",
@@ -140,6 +144,19 @@ def test_an_optional_field_that_is_not_known_is_left_out_not_sent_as_null():
     assert blind.payload["reason"] == "25 degC from every baseline" and "reason" not in restored.payload
     assert restored.payload["links"] == {"node": "https://pipes.example.org/api/v1/nodes/n-1"}  # no measurement
     assert restored.payload["measurement_id"] is None and restored.payload["location"] is None  # these stay null
+    offline, online, never_seen, first_seen = every_kind_of_event()[4:8]
+    assert "never_seen" not in offline.payload and "first_seen" not in online.payload
+    assert never_seen.payload["never_seen"] is True and first_seen.payload["first_seen"] is True
+
+
+def test_a_node_never_seen_is_said_so_in_its_offline_and_first_online_summaries():
+    offline, online, never_seen, first_seen = every_kind_of_event()[4:8]
+    assert offline.payload["summary"].startswith("node n-1 offline: not seen for 3.0 h")
+    assert never_seen.payload["summary"] == (
+        "node n-2 offline: never answered, watched for 10 min (since 2026-03-01 12:00:00 UTC)")
+    assert never_seen.payload["last_seen_at"] == T0.isoformat() and never_seen.payload["offline_for_s"] == 600.0
+    assert first_seen.payload["summary"] == (
+        "node n-2 answered for the first time, after 12 min watched, state commissioning")
 
 
 def test_the_location_carries_the_estimates_90_percent_region_when_the_detection_has_one():

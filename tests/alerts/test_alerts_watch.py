@@ -56,6 +56,46 @@ def test_a_decommissioned_node_is_not_reported_offline_until_it_is_back_in_servi
     assert check(outbox_db, T0 + timedelta(minutes=12)) == [EventKind.NODE_OFFLINE]  # silent since T0
 
 
+def test_a_configured_node_that_never_answers_is_reported_offline_as_never_seen_and_online_at_its_first_answer(
+    outbox_db,
+):
+    from db.nodes import register_configured_node, upsert_node
+    from tests.support.db_fixtures import node_info
+
+    started = T0 + timedelta(hours=1)  # the gateway restarts with node-d added to its configuration
+    with outbox_db.write() as session:
+        register_configured_node(session, "node-d", port_url="tcp://127.0.0.1:9", now=started)
+    assert check(outbox_db, started + timedelta(minutes=9), watching_since=started) == []
+    assert check(outbox_db, started + timedelta(minutes=11), watching_since=started) == [EventKind.NODE_OFFLINE] * 4
+    assert check(outbox_db, started + timedelta(minutes=30), watching_since=started) == []
+    with outbox_db.session() as session:
+        never, = [e for e in events_of_kind(session, EventKind.NODE_OFFLINE) if e.node_id == "node-d"]
+    assert never.payload["never_seen"] is True and never.payload["last_seen_at"] == started.isoformat()
+    assert never.payload["offline_for_s"] == 660.0 and never.payload["state"] == "commissioning"
+    restarted = started + timedelta(hours=1)  # still silent across a restart: the same outage, no new event
+    assert check(outbox_db, restarted + timedelta(minutes=11), watching_since=restarted) == []
+    answered = restarted + timedelta(minutes=20)
+    with outbox_db.write() as session:
+        upsert_node(session, node_info("node-d"), seen_at=answered)
+    assert check(outbox_db, answered + timedelta(seconds=1), watching_since=restarted) == [EventKind.NODE_ONLINE]
+    with outbox_db.session() as session:
+        online, = events_of_kind(session, EventKind.NODE_ONLINE)
+    assert online.payload["first_seen"] is True and online.payload["offline_event_id"] == str(never.id)
+    assert online.payload["offline_for_s"] == (answered - started).total_seconds()
+
+
+def test_a_node_never_seen_gets_offline_after_downtime_from_its_registration_or_the_gateways_start():
+    from alerts.outages import offline_due, silent_since_of
+
+    registered, seen = T0, T0 + timedelta(minutes=5)
+    assert silent_since_of(None, registered) == registered and silent_since_of(seen, registered) == seen
+    due = dict(offline_after_s=600.0)
+    assert not offline_due(registered, T0, now=T0 + timedelta(seconds=600), **due)
+    assert offline_due(registered, T0, now=T0 + timedelta(seconds=601), **due)
+    restarted = T0 + timedelta(days=1)  # registered long ago, the gateway just started: it gets its time
+    assert not offline_due(registered, restarted, now=restarted + timedelta(minutes=9), **due)
+
+
 def test_every_new_baseline_gets_one_event_whoever_set_it(outbox_db):
     from alerts.baseline_watch import check_baseline_changes
     from db.baselines import set_active_baseline

@@ -15,7 +15,7 @@ from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect, text
-from sqlalchemy.exc import StatementError
+from sqlalchemy.exc import IntegrityError, StatementError
 
 from db.database import Database, open_database
 from db.errors import SchemaOutOfDate, StorageBusy
@@ -283,6 +283,76 @@ def store_sample_as_of_0003(session) -> int:
         traces_sha256=encoded.sha256, traces_nbytes=len(encoded.data), traces_pruned_at=None, stored_at=T0,
     ))
     return int(result.inserted_primary_key[0])
+
+
+@pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
+def test_a_database_of_release_0008_upgrades_keeping_its_nodes_and_records_and_can_hold_a_node_never_seen(
+    request, url_fixture
+):
+    from sqlalchemy import create_engine, insert
+    from sqlalchemy.orm import Session
+
+    from db.models import NodeRow
+    from db.nodes import register_configured_node
+
+    url = request.getfixturevalue(url_fixture)
+    engine = create_engine(url)
+    with engine.connect() as connection:
+        command.upgrade(alembic_config(connection), "0008")
+        connection.commit()
+        with Session(connection) as session:  # a node with a measurement referring to it (the table is rebuilt
+            store_node_as_of_0003(session)  # on SQLite only if its foreign keys let it)
+            old_id = store_sample_as_of_0003(session)
+            session.commit()
+    engine.dispose()
+    database = open_database(url)
+    try:
+        assert database.schema_revision() == head_revision() != "0008"
+        with database.session() as session:
+            old = get_node(session, "node-a")
+            assert (old.watched_since, old.first_seen_at, old.last_seen_at, old.n_channels) == (T0, T0, T0, 8)
+            assert not old.never_seen and get_measurement(session, old_id).node_id == "node-a"
+        later = T0 + timedelta(days=1)
+        with database.write() as session:
+            assert register_configured_node(session, "node-b", port_url="serial:///dev/ttyUSB1", now=later)
+        with database.session() as session:
+            new = get_node(session, "node-b")
+            assert new.never_seen and new.watched_since == later and new.first_seen_at is None
+            assert (new.firmware, new.protocol_version, new.n_channels, new.fs_hz, new.geometry) == (None,) * 5
+        with pytest.raises(IntegrityError, match="watched_since"), database.write() as session:  # when it was registered is never unknown
+            session.execute(insert(NodeRow).values(node_id="node-c", port_url="tcp://x:1", online=False,
+                                                   error_counters={}, state="commissioning"))
+    finally:
+        database.dispose()
+
+
+@pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
+def test_downgrading_to_0008_forgets_the_nodes_never_seen_with_their_events_and_keeps_the_others(request, url_fixture):
+    from alerts.config import AlertingSettings
+    from alerts.outages import check_outages
+    from db.nodes import register_configured_node
+
+    database = open_database(request.getfixturevalue(url_fixture))
+    try:
+        with database.write() as session:
+            upsert_node(session, node_info("node-a"), seen_at=T0)
+            store_sample(session, "node-a")
+            register_configured_node(session, "node-b", port_url="tcp://127.0.0.1:1", now=T0)
+            later = T0 + timedelta(hours=2)
+            added = check_outages(session, AlertingSettings(), now=later, watching_since=T0)
+            assert {event.payload["node_id"] for event in added} == {"node-a", "node-b"}
+        with database.engine.connect() as connection:
+            command.downgrade(alembic_config(connection), "0008")
+            connection.commit()
+            nodes = connection.execute(text("SELECT node_id FROM nodes")).scalars().all()
+            events = connection.execute(text("SELECT node_id FROM events")).scalars().all()
+            columns = {c["name"]: c["nullable"] for c in inspect(connection).get_columns("nodes")}
+        assert nodes == ["node-a"] and events == ["node-a"]
+        assert "watched_since" not in columns and not columns["n_channels"] and not columns["last_seen_at"]
+        upgrade_to_head(database.engine)
+        assert database.schema_revision() == head_revision()
+    finally:
+        database.dispose()
 
 
 def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
