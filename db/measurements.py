@@ -18,6 +18,7 @@ from db.models import (
     EventRow,
     MeasurementKind,
     MeasurementRow,
+    NodeRow,
     StateChangeRow,
     UplinkKind,
 )
@@ -157,7 +158,9 @@ def _di_map_row(measurement_id: int, di_map: DiMapInput, now: datetime) -> DiMap
 
 def add_event(session: Session, event: EventInput, *, node_id: str | None, now: datetime | None = None) -> EventRow:
     """Put an alert in the outbox with one pending delivery per sink (same transaction), and in
-    the uplink queue when the session queues for one."""
+    the uplink queue when the session queues for one — an event about a node that never answered
+    is queued with the node's first record instead (``enqueue_node``): the centre accepts an
+    event only about a node it knows."""
     now = now or utc_now()
     row = EventRow(
         id=event.id,
@@ -180,7 +183,9 @@ def add_event(session: Session, event: EventInput, *, node_id: str | None, now: 
     ]
     session.add(row)
     if queue_policy(session) is not None:
-        enqueue(session, UplinkKind.ALERT_EVENT, event.id.hex, node_id=node_id, now=now)
+        about = None if node_id is None else session.get(NodeRow, node_id)
+        if about is None or not about.never_seen:
+            enqueue(session, UplinkKind.ALERT_EVENT, event.id.hex, node_id=node_id, now=now)
     return row
 
 

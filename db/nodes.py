@@ -127,7 +127,8 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
             state=NodeState.COMMISSIONING,
         )
         session.add(node)
-    if node.first_seen_at is None:
+    first_answer = node.first_seen_at is None
+    if first_answer:
         node.first_seen_at = seen_at
     node.port_url = info.port_url
     node.firmware = info.firmware
@@ -139,7 +140,7 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
     node.online = True
     session.flush()
     if queue_policy(session) is not None:
-        enqueue_node(session, info.node_id, now=seen_at)
+        enqueue_node(session, info.node_id, now=seen_at, first_answer=first_answer)
     return node
 
 

@@ -28,7 +28,16 @@ from sqlalchemy import CursorResult, Result, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.clock import utc_now
-from db.models import BaselineRow, MeasurementKind, MeasurementRow, NodeState, UplinkKind, UplinkRow, UplinkStatus
+from db.models import (
+    BaselineRow,
+    EventRow,
+    MeasurementKind,
+    MeasurementRow,
+    NodeState,
+    UplinkKind,
+    UplinkRow,
+    UplinkStatus,
+)
 
 QUEUE_POLICY = "pipesentry.uplink_queue"  # key of Session.info: the QueuePolicy of sessions that queue
 FLAGGED_STATES = frozenset({NodeState.SUSPECTED, NodeState.DAMAGE})
@@ -102,22 +111,39 @@ def enqueue(
     return row
 
 
-def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None) -> bool:
+def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None, first_answer: bool = False) -> bool:
     """Queue the node's identity and geometry unless a record of it is still pending (it is read
     when sent, so one pending record carries the latest); True if one was queued.
 
     The node's first record ever (its database predates the uplink) is followed by the node's
     baselines stored before: later records refer to them (a detection to the baseline it was
-    imaged against), and the centre accepts a reference only to a record it holds.
+    imaged against), and the centre accepts a reference only to a record it holds. At the node's
+    ``first_answer`` (registered from the configuration, never seen until now) the alert events
+    stored about it meanwhile follow its record (``add_event`` held them back).
     """
     statuses = select(UplinkRow.status).where(UplinkRow.node_id == node_id, UplinkRow.kind == UplinkKind.NODE)
-    if session.scalar(statuses.where(UplinkRow.status == UplinkStatus.PENDING).limit(1)) is not None:
-        return False
-    first = session.scalar(statuses.limit(1)) is None
-    enqueue(session, UplinkKind.NODE, node_id, node_id=node_id, now=now)
-    if first:
-        _enqueue_earlier_baselines(session, node_id, now=now)
-    return True
+    queued = False
+    if session.scalar(statuses.where(UplinkRow.status == UplinkStatus.PENDING).limit(1)) is None:
+        first = session.scalar(statuses.limit(1)) is None
+        enqueue(session, UplinkKind.NODE, node_id, node_id=node_id, now=now)
+        if first:
+            _enqueue_earlier_baselines(session, node_id, now=now)
+        queued = True
+    if first_answer:
+        _enqueue_held_events(session, node_id, now=now)
+    return queued
+
+
+def _enqueue_held_events(session: Session, node_id: str, *, now: datetime | None) -> None:
+    """The node's alert events not in the queue (stored while it had never answered), oldest first."""
+    queued = select(UplinkRow.ref).where(UplinkRow.node_id == node_id, UplinkRow.kind == UplinkKind.ALERT_EVENT)
+    held = session.scalars(
+        select(EventRow.id).where(EventRow.node_id == node_id).order_by(EventRow.created_at, EventRow.id)
+    ).all()
+    already = set(session.scalars(queued))
+    for event_id in held:
+        if event_id.hex not in already:
+            enqueue(session, UplinkKind.ALERT_EVENT, event_id.hex, node_id=node_id, now=now)
 
 
 def _enqueue_earlier_baselines(session: Session, node_id: str, *, now: datetime | None) -> None:

@@ -14,6 +14,7 @@ from db.clock import utc_now
 from db.database import Database, StorageOutage, open_database
 from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, StorageError
 from db.measurements import add_event_once
+from db.nodes import register_configured_node
 from db.retention import prune_traces
 from db.uplink_queue import QueuePolicy, queue_stats
 from db.urls import safe_database_url
@@ -95,7 +96,24 @@ class Gateway:
         """Loops whose thread ended while the daemon runs (a bug escaped its loop): nothing polls there any more."""
         return sorted(t.name for t in self.threads() if t.ident is not None and not t.is_alive())
 
+    def register_nodes(self) -> list[str]:
+        """Every configured node gets its row before any is polled (never seen until it answers), so a
+        node that never answers is listed, counted and reported offline; returns the ones new here.
+        A storage error leaves it to the worker, at the node's first failed cycle or first answer."""
+        now = utc_now()
+        try:
+            with self.db.write() as session:
+                added = [node.id for node in self.settings.nodes
+                         if register_configured_node(session, node.id, port_url=node.url, now=now)]
+        except StorageError as exc:
+            log.error("could not register the configured nodes (each is registered when it is polled): %s", exc)
+            return []
+        if added:
+            log.info("registered %d configured node(s) not seen yet: %s", len(added), ", ".join(added))
+        return added
+
     def start(self) -> None:
+        self.register_nodes()
         for w in self.workers:
             w.thread.start()
         self._retention.start()

@@ -32,8 +32,15 @@ from db.cycles import StoredCycle, store_cycle
 from db.database import Database
 from db.errors import DatabaseDamaged, StorageError, StorageUnavailable
 from db.measurements import add_event_once
-from db.models import MeasurementKind, NodeRow, NodeState
-from db.nodes import get_node, is_decommissioned, record_node_health, record_node_link, upsert_node
+from db.models import MeasurementKind, NodeState
+from db.nodes import (
+    get_node,
+    is_decommissioned,
+    record_node_health,
+    record_node_link,
+    register_configured_node,
+    upsert_node,
+)
 from db.queries import baseline_count, calibration_peaks, recent_verdicts
 from db.records import CycleRecord, DiMapInput, EventInput, NodeInfo
 from gateway.acquisition import (
@@ -299,9 +306,9 @@ class NodeWorker:
         the node's own counters as last read (they are otherwise stored only with a measurement)."""
         try:
             with self.db.write() as session:
-                node = session.get(NodeRow, self.settings.id)
-                if node is None:
-                    return  # never answered: nothing registered to mark
+                # Registered at the gateway's start; if that write failed, now (never seen until it answers).
+                register_configured_node(session, self.settings.id, port_url=self.settings.url)
+                node = get_node(session, self.settings.id)
                 record_node_health(session, self.settings.id, online=False,
                                    error_counters={**(node.error_counters or {}), **self.counters.as_dict()})
         except StorageError as exc:

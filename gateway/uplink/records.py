@@ -134,6 +134,11 @@ def _measurement_uid(gw: str, measurement_id: int | None) -> str | None:
 
 
 def _node(node: NodeRow, uid: str) -> NodeRecord:
+    # Queued only at an INFO (upsert_node); a node registered from the configuration that never answered
+    # has nothing the contract could carry (no channels, no geometry), so it is not sent.
+    if (node.firmware is None or node.protocol_version is None or node.n_channels is None or node.fs_hz is None
+            or node.geometry is None or node.first_seen_at is None or node.last_seen_at is None):
+        raise RecordUnreadable(f"node {node.node_id} has never answered: nothing to replicate yet")
     return NodeRecord(
         uid=uid, node_id=node.node_id, firmware=node.firmware, protocol_version=node.protocol_version,
         n_channels=node.n_channels, fs_hz=node.fs_hz, geometry=dict(node.geometry), first_seen_at=node.first_seen_at,

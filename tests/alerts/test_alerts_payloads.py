@@ -150,7 +150,7 @@ def test_an_optional_field_that_is_not_known_is_left_out_not_sent_as_null():
 
 
 def test_a_node_never_seen_is_said_so_in_its_offline_and_first_online_summaries():
-    offline, online, never_seen, first_seen = every_kind_of_event()[4:8]
+    offline, _online, never_seen, first_seen = every_kind_of_event()[4:8]
     assert offline.payload["summary"].startswith("node n-1 offline: not seen for 3.0 h")
     assert never_seen.payload["summary"] == (
         "node n-2 offline: never answered, watched for 10 min (since 2026-03-01 12:00:00 UTC)")

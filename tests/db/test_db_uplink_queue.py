@@ -99,6 +99,43 @@ def test_a_reconnecting_node_is_queued_again_only_once_its_pending_record_went_u
     assert [kind for kind, *_ in queued(queueing_db)] == ["node", "node"]
 
 
+def test_a_node_that_never_answered_is_queued_at_its_first_answer_followed_by_the_events_stored_about_it_meanwhile(
+    queueing_db,
+):
+    from alerts.config import AlertingSettings
+    from alerts.outages import check_outages
+    from db.nodes import register_configured_node
+    from gateway.uplink.records import wire_records
+
+    alerting = AlertingSettings(offline_after_s=60)
+    with queueing_db.write() as session:
+        register_configured_node(session, "node-q", port_url="tcp://127.0.0.1:9", now=T0)
+        offline, = check_outages(session, alerting, now=T0 + minutes(2), watching_since=T0)
+    assert queued(queueing_db) == []  # the centre would refuse an event about a node it does not know
+    with queueing_db.write() as session:
+        upsert_node(session, node_info("node-q"), seen_at=T0 + minutes(3))
+        online, = check_outages(session, alerting, now=T0 + minutes(3), watching_since=T0)
+    assert queued(queueing_db) == [("node", "node-q", "node-q", False), ("alert_event", "node-q", offline.id.hex, False),
+                                   ("alert_event", "node-q", online.id.hex, False)]
+    with queueing_db.session() as session:
+        made, unreadable = wire_records(session, "gw-1", next_batch(session, limit=10))
+    assert unreadable == {} and [w.record.kind for w in made] == ["node", "alert_event", "alert_event"]
+    assert made[1].record.payload["never_seen"] is True and made[2].record.payload["first_seen"] is True
+
+
+def test_a_node_record_of_a_node_that_never_answered_is_not_made(queueing_db):
+    from db.nodes import register_configured_node
+    from db.uplink_queue import enqueue
+    from gateway.uplink.records import wire_records
+
+    with queueing_db.write() as session:  # not queued by the gateway; a queue from elsewhere must not send it
+        register_configured_node(session, "node-q", port_url="tcp://127.0.0.1:9", now=T0)
+        row = enqueue(session, UplinkKind.NODE, "node-q", node_id="node-q")
+        session.flush()
+        made, unreadable = wire_records(session, "gw-1", [row])
+    assert made == [] and unreadable == {row.id: "node node-q has never answered: nothing to replicate yet"}
+
+
 def test_flagged_traces_sends_traces_only_of_flagged_measurements_and_baselines():
     policy = QueuePolicy("flagged_traces")
     calm = dict(kind=MeasurementKind.MONITOR, detection_state=NodeState.OK, peak_di=0.1, threshold=0.3,
