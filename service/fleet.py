@@ -86,9 +86,10 @@ def _node_view(node: NodeRow, baseline: BaselineRow | None, detection: Detection
         protocol_version=node.protocol_version,
         n_channels=node.n_channels,
         fs_hz=node.fs_hz,
-        geometry=schemas.Geometry.model_validate(node.geometry),
+        geometry=None if node.geometry is None else schemas.Geometry.model_validate(node.geometry),
         health=schemas.Health(
-            online=node.online, first_seen_at=node.first_seen_at, last_seen_at=node.last_seen_at,
+            online=node.online, never_seen=node.never_seen, watched_since=node.watched_since,
+            first_seen_at=node.first_seen_at, last_seen_at=node.last_seen_at,
             reported_node_id=node.reported_node_id, boot_id=node.boot_id, reboots=node.reboots or 0,
             last_reboot_at=node.last_reboot_at,
             applied_settings=None if node.applied_settings is None

@@ -56,7 +56,8 @@ class FleetCollector(Collector):
         threshold = GaugeMetricFamily("pipesentry_node_di_threshold",
                                       "the node's damage threshold (absent while it has none: commissioning, calibrating)",
                                       labels=labels)
-        seen = GaugeMetricFamily("pipesentry_node_last_seen_timestamp_seconds", "when the node last answered",
+        seen = GaugeMetricFamily("pipesentry_node_last_seen_timestamp_seconds",
+                                 "when the node last answered (absent: never)",
                                  labels=labels)
         measured = GaugeMetricFamily("pipesentry_node_last_measurement_timestamp_seconds",
                                      "acquisition time of the node's last stored measurement", labels=labels)
@@ -83,7 +84,8 @@ class FleetCollector(Collector):
                 peak.add_metric(name, node.latest_di_peak)
             if node.latest_threshold is not None and node.state not in UNTHRESHOLDED_STATES:
                 threshold.add_metric(name, node.latest_threshold)
-            seen.add_metric(name, node.last_seen_at.timestamp())
+            if node.last_seen_at is not None:  # absent for a node that never answered (up is 0)
+                seen.add_metric(name, node.last_seen_at.timestamp())
             if node.node_id in last_measured:
                 measured.add_metric(name, last_measured[node.node_id].timestamp())
             for counter, value in sorted((node.error_counters or {}).items()):

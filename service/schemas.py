@@ -40,8 +40,12 @@ class AppliedSettings(_Out):
 
 class Health(_Out):
     online: bool = Field(description="the node answered its last poll")
-    first_seen_at: datetime
-    last_seen_at: datetime = Field(description="when the node last answered")
+    never_seen: bool = Field(False, description="the node is configured but has never answered (first_seen_at, "
+                             "last_seen_at and what INFO tells are null until it does)")
+    watched_since: datetime | None = Field(None, description="when the gateway started watching the node (its "
+                                           "start, for a node of its configuration; else the node's first answer)")
+    first_seen_at: datetime | None = Field(description="the node's first answer (null: never seen)")
+    last_seen_at: datetime | None = Field(description="when the node last answered (null: never seen)")
     reported_node_id: str | None = Field(
         None, description="the node_id the node on the port reports (INFO); records are stored only when it is "
         "this node's id")
@@ -151,11 +155,12 @@ class Node(_Out):
     details: NodeDetails
     decommissioned: Decommissioned | None = Field(description="null while the node is in service")
     port_url: str
-    firmware: str
-    protocol_version: int
-    n_channels: int
-    fs_hz: float
-    geometry: Geometry
+    # From the node's INFO: null while it has never answered (health.never_seen).
+    firmware: str | None = Field(description="null: never seen")
+    protocol_version: int | None = Field(description="null: never seen")
+    n_channels: int | None = Field(description="null: never seen")
+    fs_hz: float | None = Field(description="null: never seen")
+    geometry: Geometry | None = Field(description="null: never seen (unknown until its INFO)")
     health: Health
     error_counters: dict[str, int] = Field(description="serial-link and gateway counters, as last polled")
     state: NodeState

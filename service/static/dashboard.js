@@ -54,6 +54,11 @@ function fmt(value, digits = 3) {
   return value === null || value === undefined ? "–" : String(Number(Number(value).toPrecision(digits)));
 }
 function when(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
+// A configured node that has never answered: offline since the gateway started watching it.
+function seenText(health) {
+  return health.never_seen ? `never (watched since ${when(health.watched_since)})` : when(health.last_seen_at);
+}
+function onlineText(health) { return health.online ? "yes" : health.never_seen ? "never seen" : "offline"; }
 function stateBadge(state) { return el("span", { class: "state state-" + state, "data-state": state }, state.replaceAll("_", " ")); }
 
 function showKeyForm(message) {
@@ -106,8 +111,8 @@ function renderFleet(nodes) {
     el("td", {}, n.site === null ? "–" : `${n.site} / ${n.gateway_id}`),
     el("td", {}, stateBadge(n.state)),
     el("td", {}, when(n.state_since)),
-    el("td", n.health.online ? {} : { class: "offline" }, n.health.online ? "yes" : "offline"),
-    el("td", {}, when(n.health.last_seen_at)),
+    el("td", n.health.online ? {} : { class: "offline" }, onlineText(n.health)),
+    el("td", {}, seenText(n.health)),
     el("td", {}, `${fmt(n.latest_di_peak)} / ${fmt(n.latest_threshold)}`),
     el("td", {}, n.active_baseline ? `measurement ${n.active_baseline.measurement_id} (${n.active_baseline.created_by})` : "none"),
   ));
@@ -221,7 +226,8 @@ async function renderNode(node) {
   section.querySelector(".badge").replaceChildren(stateBadge(node.state));
   section.querySelector(".summary").textContent =
     (node.details.label ? `${node.details.label}${node.details.location ? `, ${node.details.location}` : ""} · ` : "") +
-    `${node.health.online ? "online" : "OFFLINE"} · last seen ${when(node.health.last_seen_at)} · ` +
+    `${node.health.online ? "online" : node.health.never_seen ? "NEVER SEEN" : "OFFLINE"} · ` +
+    `last seen ${seenText(node.health)} · ` +
     `DI peak ${fmt(node.latest_di_peak)} / threshold ${fmt(node.latest_threshold)}`;
   const b = node.active_baseline;
   section.querySelector(".baseline").textContent = b
@@ -248,7 +254,7 @@ async function renderNode(node) {
     img.hidden = true;
     section.querySelector(".map-caption").textContent = latest
       ? `No DI map of measurement ${latest.measurement_id} (${when(latest.created_at)}).`
-      : "No DI map yet (commissioning).";
+      : node.health.never_seen ? "No DI map: the node has never answered." : "No DI map yet (commissioning).";
     shownMaps.delete(node.node_id);
     return;
   }
