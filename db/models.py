@@ -126,7 +126,7 @@ class Base(DeclarativeBase):
 class NodeRow(Base):
     """One FPGA node as last reported by its INFO message, plus the gateway's view of it.
 
-    A configured node is registered when the gateway starts (revision 0009), before it answers:
+    A configured node is registered when the gateway starts (revision 0010), before it answers:
     until its first INFO what INFO tells is unknown (NULL) and it was never seen
     (``last_seen_at`` NULL, :attr:`never_seen`); ``watched_since`` is when it was registered.
     """
@@ -136,14 +136,14 @@ class NodeRow(Base):
 
     node_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     port_url: Mapped[str] = mapped_column(String(255))
-    # From INFO; NULL until the node's first INFO (revision 0009).
+    # From INFO; NULL until the node's first INFO (revision 0010).
     firmware: Mapped[str | None] = mapped_column(String(64))
     protocol_version: Mapped[int | None] = mapped_column(Integer)
     n_channels: Mapped[int | None] = mapped_column(Integer)
     fs_hz: Mapped[float | None] = mapped_column(Float)
     # ring angles, tx_rx_distance_mm, circumference_mm, pipe_length_mm, tx_axial_mm
     geometry: Mapped[dict[str, Any] | None] = mapped_column(json_type())
-    watched_since: Mapped[datetime]  # registered: at the gateway's start, or at its first INFO (revision 0009)
+    watched_since: Mapped[datetime]  # registered: at the gateway's start, or at its first INFO (revision 0010)
     first_seen_at: Mapped[datetime | None]
     last_seen_at: Mapped[datetime | None]  # NULL: never answered
     online: Mapped[bool] = mapped_column(Boolean, server_default=false())

@@ -286,7 +286,7 @@ def store_sample_as_of_0003(session) -> int:
 
 
 @pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
-def test_a_database_of_release_0008_upgrades_keeping_its_nodes_and_records_and_can_hold_a_node_never_seen(
+def test_a_database_of_release_0009_upgrades_keeping_its_nodes_and_records_and_can_hold_a_node_never_seen(
     request, url_fixture
 ):
     from sqlalchemy import create_engine, insert
@@ -298,7 +298,7 @@ def test_a_database_of_release_0008_upgrades_keeping_its_nodes_and_records_and_c
     url = request.getfixturevalue(url_fixture)
     engine = create_engine(url)
     with engine.connect() as connection:
-        command.upgrade(alembic_config(connection), "0008")
+        command.upgrade(alembic_config(connection), "0009")
         connection.commit()
         with Session(connection) as session:  # a node with a measurement referring to it (the table is rebuilt
             store_node_as_of_0003(session)  # on SQLite only if its foreign keys let it)
@@ -307,7 +307,7 @@ def test_a_database_of_release_0008_upgrades_keeping_its_nodes_and_records_and_c
     engine.dispose()
     database = open_database(url)
     try:
-        assert database.schema_revision() == head_revision() != "0008"
+        assert database.schema_revision() == head_revision() != "0009"
         with database.session() as session:
             old = get_node(session, "node-a")
             assert (old.watched_since, old.first_seen_at, old.last_seen_at, old.n_channels) == (T0, T0, T0, 8)
@@ -327,7 +327,7 @@ def test_a_database_of_release_0008_upgrades_keeping_its_nodes_and_records_and_c
 
 
 @pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
-def test_downgrading_to_0008_forgets_the_nodes_never_seen_with_their_events_and_keeps_the_others(request, url_fixture):
+def test_downgrading_to_0009_forgets_the_nodes_never_seen_with_their_events_and_keeps_the_others(request, url_fixture):
     from alerts.config import AlertingSettings
     from alerts.outages import check_outages
     from db.nodes import register_configured_node
@@ -342,7 +342,7 @@ def test_downgrading_to_0008_forgets_the_nodes_never_seen_with_their_events_and_
             added = check_outages(session, AlertingSettings(), now=later, watching_since=T0)
             assert {event.payload["node_id"] for event in added} == {"node-a", "node-b"}
         with database.engine.connect() as connection:
-            command.downgrade(alembic_config(connection), "0008")
+            command.downgrade(alembic_config(connection), "0009")
             connection.commit()
             nodes = connection.execute(text("SELECT node_id FROM nodes")).scalars().all()
             events = connection.execute(text("SELECT node_id FROM events")).scalars().all()
