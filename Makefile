@@ -16,9 +16,14 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(BIN)/pipesentry demo
 
+# Two pytest-xdist workers (WORKERS=1 for one process): most of an e2e test's time is spent waiting
+# on real processes, so two share two cores well. Every test has its own files, ports, PostgreSQL
+# schema or database, so none depends on running alone.
+WORKERS ?= 2
+
 test: $(STAMP) lint
 	bash scripts/ensure-test-deps.sh
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(WORKERS) --dist worksteal
 
 # The unit tests only (no real processes, PostgreSQL or browser): about a minute.
 test-fast: $(STAMP)
