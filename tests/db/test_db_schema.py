@@ -215,27 +215,37 @@ def test_a_database_of_the_first_release_upgrades_keeping_its_nodes(sqlite_url):
         database.dispose()
 
 
+def database_of_release(url: str, revision: str) -> int:
+    """The database at ``url`` migrated to ``revision`` only, holding a node and one record stored as
+    release 0003 stored them (the schema the later revisions kept compatible); returns the record's id."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.orm import Session
+
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            command.upgrade(alembic_config(connection), revision)
+            connection.commit()
+            with Session(connection) as session:
+                store_node_as_of_0003(session)
+                old_id = store_sample_as_of_0003(session)
+                session.commit()
+    finally:
+        engine.dispose()
+    return old_id
+
+
 @pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
 def test_a_database_of_release_0003_upgrades_keeping_its_records_which_export_with_the_default_velocity(
     request, url_fixture
 ):
-    from sqlalchemy import create_engine
-    from sqlalchemy.orm import Session
 
     from db.measurement_build import stored_measurement
     from db.measurements import load_traces
     from imaging.measurement import DEFAULT_VELOCITY_M_S
 
     url = request.getfixturevalue(url_fixture)
-    engine = create_engine(url)
-    with engine.connect() as connection:
-        command.upgrade(alembic_config(connection), "0003")
-        connection.commit()
-        with Session(connection) as session:  # a record as release 0003 stored it (no velocity, no wall)
-            store_node_as_of_0003(session)
-            old_id = store_sample_as_of_0003(session)
-            session.commit()
-    engine.dispose()
+    old_id = database_of_release(url, "0003")  # a record as release 0003 stored it (no velocity, no wall)
     database = open_database(url)  # the gateway's open: upgrades to head
     try:
         assert database.schema_revision() == head_revision() != "0003"
@@ -289,22 +299,14 @@ def store_sample_as_of_0003(session) -> int:
 def test_a_database_of_release_0009_upgrades_keeping_its_nodes_and_records_and_can_hold_a_node_never_seen(
     request, url_fixture
 ):
-    from sqlalchemy import create_engine, insert
-    from sqlalchemy.orm import Session
+    from sqlalchemy import insert
 
     from db.models import NodeRow
     from db.nodes import register_configured_node
 
     url = request.getfixturevalue(url_fixture)
-    engine = create_engine(url)
-    with engine.connect() as connection:
-        command.upgrade(alembic_config(connection), "0009")
-        connection.commit()
-        with Session(connection) as session:  # a node with a measurement referring to it (the table is rebuilt
-            store_node_as_of_0003(session)  # on SQLite only if its foreign keys let it)
-            old_id = store_sample_as_of_0003(session)
-            session.commit()
-    engine.dispose()
+    # A node with a measurement referring to it (the table is rebuilt on SQLite only if its foreign keys let it).
+    old_id = database_of_release(url, "0009")
     database = open_database(url)
     try:
         assert database.schema_revision() == head_revision() != "0009"
