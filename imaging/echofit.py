@@ -10,7 +10,9 @@ are returned separately.
 ``fit_echoes`` builds the Gram matrix from a table of the burst pair's partial products at
 each lag (the columns are shifted, possibly cut, copies of two fixed shapes), gathers only
 each column's own samples for the right-hand side and the echoes, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
-a full-length vector and solves receiver by receiver: the test oracle.
+a full-length vector and solves receiver by receiver: the test oracle. ``fit_smooth_echoes``
+shares each path's amplitude across the receivers, optionally as a circular harmonic of their
+bearing (its oracle: ``literal_fit_smooth_echoes``).
 """
 from __future__ import annotations
 
@@ -174,7 +176,11 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     here uses the same model, optionally with a pattern smooth in direction: on receiver m the
     echo along path p is w_mp sum_k (a_pk cos k d_m + b_pk sin k d_m) (burst and quadrature twin
     each), d_m the receiver's bearing from the scatterer, k = 0..``orders`` (default 0: one
-    amplitude), fitted jointly over all receivers. ``fit_echoes`` gives every receiver its own
+    amplitude), fitted jointly over all receivers. With ``orders=1`` (the multi-defect search,
+    imaging/multidefect.py) a real scatterer's directional field is followed: one amplitude per
+    path had left a structured part of it that the next pass imaged as a spurious defect (dev
+    set: 12 -> 4 beside true defects). The receivers' Gram blocks are combined per column with
+    its K weights w_mp basis_k(d_m) (the mapping to unknowns is block-diagonal). ``fit_echoes`` gives every receiver its own
     amplitude for every path: on a 16-receiver ring that also absorbs another defect's echoes
     wherever they overlap one of this defect's many paths, so the weaker of two defects vanished
     with the stronger one's fit (full-wave dev set: a second notch of DI 0.15 left at 0.03).
@@ -204,7 +210,7 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     starts = np.where(valid, starts, 0)
     gram, rhs, padded, window = _normal_equations(residual, starts, kind, valid, shapes, table)
     # Map column (pos, path, shape) on receiver m to unknowns (pos, path, basis, shape).
-    n_cols, n_unknowns = n_pos * n_paths * 2, n_pos * n_paths * n_basis * 2
+    n_cols = n_pos * n_paths * 2
     w = weight.transpose(1, 2, 0)  # [m, pos, P]
     if n_basis == 1:  # one amplitude per path: the mapping below is diagonal, a column's weight w_mp
         wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)  # the basis is the constant 1
@@ -212,19 +218,56 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
         unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ np.einsum("ma,ma->a", wc, rhs)
         return _synthesise(wc * unknowns[None, :], valid, shapes[kind], window, padded.shape[1], n_pos, n_paths,
                            n_rx, size, n)
-    mapping = np.zeros((n_rx, n_cols, n_unknowns))
-    for pos in range(n_pos):
-        for p in range(n_paths):
-            for x in range(2):
-                col = (pos * n_paths + p) * 2 + x
-                for k in range(n_basis):
-                    mapping[:, col, ((pos * n_paths + p) * n_basis + k) * 2 + x] = w[:, pos, p] * basis_arr[:, pos, k]
-    big_gram = np.einsum("mau,mav->uv", mapping, gram @ mapping)
-    big_rhs = np.einsum("mau,ma->u", mapping, rhs)
+    # Column (pos, path, shape) on receiver m carries unknowns (pos, path, shape, k) with weights
+    # w_mp * basis_k(d_m): the mapping is block-diagonal, one row of K weights per column.
+    wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)[:, :, None] * np.repeat(
+        np.repeat(basis_arr, n_paths, axis=1), 2, axis=1)  # [m, column, K]
+    big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(n_cols * n_basis, -1)
+    big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
     unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
-    coef = np.einsum("mau,u->ma", mapping, unknowns)
+    coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(n_cols, n_basis))
     return _synthesise(coef, valid, shapes[kind], window, padded.shape[1], n_pos, n_paths, n_rx, size, n)
 
+
+
+def literal_fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],
+                              orders: int = SMOOTH_ORDERS) -> list[np.ndarray]:
+    """``fit_smooth_echoes`` with every unknown's column written out over all receivers: the test oracle."""
+    residual = np.asarray(residual, dtype=np.float64)
+    n_rx, n = residual.shape
+    in_phase, quadrature = burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    c_mm_s = scene.velocity_m_s * MM_PER_M
+    columns: list[np.ndarray] = []
+    owner: list[int] = []
+    for p, (axial_mm, angle_deg) in enumerate(positions):
+        per_receiver = [scalar_paths(scene.model, axial_mm, angle_deg - float(scene.rx_angles_deg[m]))
+                        for m in range(n_rx)]
+        for path in range(len(per_receiver[0])):
+            for k in range(orders + 1):
+                for harmonic in ((math.cos,) if k == 0 else (math.cos, math.sin)):
+                    for shape in (in_phase, quadrature):
+                        col = np.zeros((n_rx, n))
+                        for m in range(n_rx):
+                            if not scene.rx_mask[m]:
+                                continue
+                            _group, length, w = per_receiver[m][path]
+                            bearing = math.radians(angle_deg - float(scene.rx_angles_deg[m]))
+                            start = math.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
+                            lo, hi = max(start, 0), min(start + shape.size, n)
+                            if hi > lo:
+                                col[m, lo:hi] = w * harmonic(k * bearing) * shape[lo - start:hi - start]
+                        columns.append(col.ravel())
+                        owner.append(p)
+    fitted = [np.zeros_like(residual) for _ in positions]
+    if not columns:
+        return fitted
+    design = np.stack(columns, axis=1)
+    coef = np.linalg.pinv(design.T @ design, rtol=FIT_RCOND, hermitian=True) @ (design.T @ residual.ravel())
+    owner_arr = np.asarray(owner)
+    for p in range(len(positions)):
+        sel = owner_arr == p
+        fitted[p] = (design[:, sel] @ coef[sel]).reshape(n_rx, n)
+    return fitted
 
 def _synthesise(coef: np.ndarray, valid: np.ndarray, shapes: np.ndarray, window: np.ndarray, width: int,
                 n_pos: int, n_paths: int, n_rx: int, size: int, n: int) -> list[np.ndarray]:

@@ -1,15 +1,24 @@
 """Several defects in one record: image, take the strongest peak, remove that scatterer's echoes, repeat.
 
 The echoes of point scatterers at the positions found so far are modelled as one burst per
-modelled path (imaging/paths.py) with the path's expected amplitude on each receiver and one
-free amplitude and carrier phase per path (a burst and its quadrature twin) shared by all
-receivers — the map's own scatterer model (imaging/echofit.py ``fit_smooth_echoes``) — fitted
-jointly over all receivers and scatterers by least squares and subtracted from the residual. The next peak is then sought on the cleaned residual, away from the peaks
-already found, until it falls below the detection threshold, or below MIN_RELATIVE_DI of the
-first defect's DI (what the fit leaves of a strong defect is not a new one), or has a rival peak
-elsewhere nearly as high (UNRESOLVED_PEAK_RATIO: a map of fit leftovers is flat, a second
-scatterer stands out of it), or ``max_defects`` is reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with
-the others' echoes removed.
+modelled path (imaging/paths.py) with the path's expected amplitude on each receiver, times a
+free amplitude and carrier phase per path (a burst and its quadrature twin) that may vary with
+the receiver's bearing round the ring as a first-order circular harmonic (SEARCH_FIT_ORDERS;
+imaging/echofit.py ``fit_smooth_echoes``), fitted jointly over all receivers and scatterers by
+least squares and subtracted from the residual. A real scatterer's field is directional; the
+map's own isotropic model (one amplitude per path) left a structured part of a strong defect's
+echoes that the next pass imaged as a spurious second defect. Three unknowns per path and shape
+still cannot follow another scatterer's echoes, which arrive at other delays (one free amplitude
+per path *and receiver*, ``fit_echoes``, absorbed them). The next peak is then sought on the
+cleaned residual, away from the peaks already found, until it falls below the detection
+threshold, or below MIN_RELATIVE_DI of the first defect's DI (what the fit leaves of a strong
+defect is not a new one), or has a rival peak elsewhere nearly as high (UNRESOLVED_PEAK_RATIO: a
+map of fit leftovers is flat, a second scatterer stands out of it), or ``max_defects`` is
+reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with the others' echoes
+removed; that needs the joint fit's split between defects, not only its sum, so it uses the
+map's own model (REFINE_FIT_ORDERS = 0): with a pattern per path the split of two defects whose
+paths overlap is less well determined (on the full-wave dev set's two notches, 2 / 1.5 mm with
+the map's model, 6.6 / 4.5 mm with the pattern).
 """
 from __future__ import annotations
 
@@ -40,6 +49,9 @@ COARSE_MARGIN = 0.5  # a later coarse peak below this fraction of the bar is not
 #                     far less than half their height within half a coarse step)
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
+SEARCH_FIT_ORDERS = 1  # the echoes removed before the next peak: each path's amplitude a first-order
+#                        circular harmonic of the receiver's bearing (a directional pattern; 0 = the map's)
+REFINE_FIT_ORDERS = 0  # the echoes removed in the re-location pass: the map's own model (one per path)
 
 
 class MultiDefectError(ValueError):
@@ -155,11 +167,12 @@ class _Search:
     def local_image(self, values: np.ndarray) -> LocalImage:
         return lambda local: local_multipath_pixels(values, self.scene.with_grid(local))
 
-    def fits(self, found: list[Found], *, shared: bool = True) -> list[np.ndarray]:
-        """Every found defect's echoes, fitted jointly, put through the scene's filter. ``shared``: one
-        amplitude per path for all receivers (``fit_smooth_echoes``), else one per path and receiver."""
+    def fits(self, found: list[Found], *, shared: bool = True, orders: int = 0) -> list[np.ndarray]:
+        """Every found defect's echoes, fitted jointly, put through the scene's filter. ``shared``: each
+        path's amplitude shared by all receivers, a circular harmonic of their bearing up to ``orders``
+        (``fit_smooth_echoes``), else one per path and receiver (``fit_echoes``)."""
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
-        fits = (fit_smooth_echoes(self.original, self.scene, positions) if shared
+        fits = (fit_smooth_echoes(self.original, self.scene, positions, orders=orders) if shared
                 else fit_echoes(self.original, self.scene, positions))
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
@@ -194,7 +207,6 @@ def find_defects(
     first: DIMap | None = None
     first_peak: Estimate | None = None
     found: list[Found] = []
-    fits: list[np.ndarray] = []
 
     def away_from(priors: list[Found]) -> Allowed:
         def allowed(g: Grid) -> np.ndarray:
@@ -225,12 +237,11 @@ def find_defects(
         if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
         found.append(item)
-        fits = search.fits(found)
-        residual = search.original - sum(fits)
+        residual = search.original - sum(search.fits(found, orders=SEARCH_FIT_ORDERS))
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
     if len(found) > 1:
-        found = _refine(search, found, fits)
+        found = _refine(search, found, search.fits(found, orders=REFINE_FIT_ORDERS))
     return first, found, first_peak
 
 

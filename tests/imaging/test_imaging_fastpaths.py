@@ -11,7 +11,7 @@ import imaging.multipath as multipath
 from imaging import gather
 from imaging.arrivals import analytic_signal, reference_amplitude
 from imaging.compensation import Resampler
-from imaging.echofit import fit_echoes, literal_fit_echoes
+from imaging.echofit import fit_echoes, fit_smooth_echoes, literal_fit_echoes, literal_fit_smooth_echoes
 from imaging.grid import Grid
 from imaging.multidefect import find_defects
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
@@ -95,6 +95,28 @@ def test_echo_fit_split_equals_the_literal_split_for_distinct_positions():
     positions = [(120.0, 60.0), (290.0, 230.0)]
     for fast, slow in zip(fit_echoes(residual, scene, positions), literal_fit_echoes(residual, scene, positions), strict=True):
         np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-9 * float(np.abs(slow).max()))
+
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_smooth_echo_fit_equals_the_literal_fit(data):
+    # Each path's amplitude a circular harmonic of the receiver's bearing up to ``orders``: the
+    # block-structured normal equations against every unknown's column written out in full.
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    ends = data.draw(st.booleans())
+    base, _ = baseline_and_scatterers([], n_samples=data.draw(st.sampled_from([1500, 3000])))
+    if ends:
+        base = measurement(base.traces, base.rx_angles_deg, pipe_length_mm=1000.0, tx_axial_mm=300.0)
+    positions = [(data.draw(st.floats(-20, 420)), data.draw(st.floats(0, 360)))
+                 for _ in range(data.draw(st.integers(1, 2)))]
+    orders = data.draw(st.integers(0, 2))
+    scene = Scene.of(base, path_model_for(base, model_ends=ends), rx_mask=rng.random(base.n_rx) > 0.2)
+    residual = rng.standard_normal(base.traces.shape)
+    fast = fit_smooth_echoes(residual, scene, positions, orders=orders)
+    slow = literal_fit_smooth_echoes(residual, scene, positions, orders=orders)
+    scale = max(float(np.abs(sum(slow)).max()), 1e-12)
+    np.testing.assert_allclose(sum(fast), sum(slow), rtol=0, atol=1e-7 * scale)
 
 
 @settings(max_examples=30, deadline=None)
