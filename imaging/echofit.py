@@ -176,11 +176,11 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     here uses the same model, optionally with a pattern smooth in direction: on receiver m the
     echo along path p is w_mp sum_k (a_pk cos k d_m + b_pk sin k d_m) (burst and quadrature twin
     each), d_m the receiver's bearing from the scatterer, k = 0..``orders`` (default 0: one
-    amplitude), fitted jointly over all receivers. With ``orders=1`` (the multi-defect search,
-    imaging/multidefect.py) a real scatterer's directional field is followed: one amplitude per
-    path had left a structured part of it that the next pass imaged as a spurious defect (dev
-    set: 12 -> 4 beside true defects). The receivers' Gram blocks are combined per column with
-    its K weights w_mp basis_k(d_m) (the mapping to unknowns is block-diagonal). ``fit_echoes`` gives every receiver its own
+    amplitude), fitted jointly over all receivers. ``orders=1`` follows a real scatterer's
+    directional field; the multi-defect search (imaging/multidefect.py) uses it as the
+    alternative a later peak must beat. The receivers' Gram blocks are combined per column with
+    its K weights w_mp basis_k(d_m) (the mapping to unknowns is block-diagonal, K = 1 + 2 orders).
+    ``fit_echoes`` gives every receiver its own
     amplitude for every path: on a 16-receiver ring that also absorbs another defect's echoes
     wherever they overlap one of this defect's many paths, so the weaker of two defects vanished
     with the stronger one's fit (full-wave dev set: a second notch of DI 0.15 left at 0.03).

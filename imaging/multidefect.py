@@ -1,24 +1,27 @@
 """Several defects in one record: image, take the strongest peak, remove that scatterer's echoes, repeat.
 
 The echoes of point scatterers at the positions found so far are modelled as one burst per
-modelled path (imaging/paths.py) with the path's expected amplitude on each receiver, times a
-free amplitude and carrier phase per path (a burst and its quadrature twin) that may vary with
-the receiver's bearing round the ring as a first-order circular harmonic (SEARCH_FIT_ORDERS;
-imaging/echofit.py ``fit_smooth_echoes``), fitted jointly over all receivers and scatterers by
-least squares and subtracted from the residual. A real scatterer's field is directional; the
-map's own isotropic model (one amplitude per path) left a structured part of a strong defect's
-echoes that the next pass imaged as a spurious second defect. Three unknowns per path and shape
-still cannot follow another scatterer's echoes, which arrive at other delays (one free amplitude
-per path *and receiver*, ``fit_echoes``, absorbed them). The next peak is then sought on the
-cleaned residual, away from the peaks already found, until it falls below the detection
-threshold, or below MIN_RELATIVE_DI of the first defect's DI (what the fit leaves of a strong
-defect is not a new one), or has a rival peak elsewhere nearly as high (UNRESOLVED_PEAK_RATIO: a
-map of fit leftovers is flat, a second scatterer stands out of it), or ``max_defects`` is
-reached. A last pass re-locates each defect (within REFINE_RADIUS_MM) with the others' echoes
-removed; that needs the joint fit's split between defects, not only its sum, so it uses the
-map's own model (REFINE_FIT_ORDERS = 0): with a pattern per path the split of two defects whose
-paths overlap is less well determined (on the full-wave dev set's two notches, 2 / 1.5 mm with
-the map's model, 6.6 / 4.5 mm with the pattern).
+modelled path (imaging/paths.py) with the path's expected amplitude on each receiver and one
+free amplitude and carrier phase per path (a burst and its quadrature twin) shared by all
+receivers — the map's own scatterer model (imaging/echofit.py ``fit_smooth_echoes``) — fitted
+jointly over all receivers and scatterers by least squares and subtracted from the residual.
+The next peak is then sought on the cleaned residual, away from the peaks already found (and
+from peaks ruled out), until it falls below the detection threshold, or below MIN_RELATIVE_DI
+of the first defect's DI (what the fit leaves of a strong defect is not a new one), or has a
+rival peak elsewhere nearly as high (UNRESOLVED_PEAK_RATIO: a map of fit leftovers is flat, a
+second scatterer stands out of it), or ``max_defects`` is reached.
+
+A real scatterer's field is directional, the map's model is an isotropic point: the fit leaves
+a structured part of a strong defect's echoes, which the next pass can image as a spurious
+defect. So a later peak is reported only if adding a scatterer there explains more of the
+record than letting the found defects' echoes follow a directional pattern instead (each
+path's amplitude a first-order circular harmonic of the receiver's bearing, PATTERN_ORDERS;
+``_Search.beats_patterns``); otherwise it is ruled out and the search looks further. The pattern
+is only the alternative hypothesis, never what is subtracted: removing the found defects' echoes
+with it (tried, 2026-12-02) cut spurious defects further but also took a third of a weak second
+notch's echoes wherever its paths overlapped the first's, so some of them were lost (mock
+physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A last pass re-locates each
+defect (within REFINE_RADIUS_MM) with the others' echoes removed.
 """
 from __future__ import annotations
 
@@ -49,9 +52,8 @@ COARSE_MARGIN = 0.5  # a later coarse peak below this fraction of the bar is not
 #                     far less than half their height within half a coarse step)
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
-SEARCH_FIT_ORDERS = 1  # the echoes removed before the next peak: each path's amplitude a first-order
-#                        circular harmonic of the receiver's bearing (a directional pattern; 0 = the map's)
-REFINE_FIT_ORDERS = 0  # the echoes removed in the re-location pass: the map's own model (one per path)
+PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
+#                     amplitude a circular harmonic of the receiver's bearing up to this order
 
 
 class MultiDefectError(ValueError):
@@ -177,6 +179,16 @@ class _Search:
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
 
+    def beats_patterns(self, found: list[Found], item: Found) -> bool:
+        """Does adding a scatterer at ``item`` (the map's model) explain more of the record than
+        letting the ``found`` defects' echoes follow a directional pattern instead (each path's
+        amplitude a circular harmonic of the receiver's bearing up to PATTERN_ORDERS)? The
+        candidate has the fewer unknowns (2 per path, against 4 per path and found defect), so a
+        tie goes to the pattern."""
+        with_item = float(np.sum((self.original - sum(self.fits(found + [item])))**2))
+        patterned = float(np.sum((self.original - sum(self.fits(found, orders=PATTERN_ORDERS)))**2))
+        return with_item < patterned
+
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
         runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)
         return Found(estimate, di_map, severity_at(values, self.scene, estimate), runner_up)
@@ -217,10 +229,13 @@ def find_defects(
             return mask
         return allowed
 
-    for _ in range(max_defects):
+    rejected: list[Found] = []
+    for _ in range(2 * max_defects - 1):  # each pass reports a defect or rules a peak out
+        if len(found) >= max_defects:
+            break
         values, di_map = search.image(residual)
         first = first or di_map
-        allowed = away_from(list(found))
+        allowed = away_from(list(found) + rejected)
         candidates = np.where(allowed(grid), di_map.pixels, -np.inf)
         if not np.isfinite(candidates).any():
             break
@@ -236,12 +251,15 @@ def find_defects(
         item = search.found(values, di_map, estimate)
         if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
+        if found and not search.beats_patterns(found, item):
+            rejected.append(item)  # what the found defects' directional fields leave: look further
+            continue
         found.append(item)
-        residual = search.original - sum(search.fits(found, orders=SEARCH_FIT_ORDERS))
+        residual = search.original - sum(search.fits(found))
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
     if len(found) > 1:
-        found = _refine(search, found, search.fits(found, orders=REFINE_FIT_ORDERS))
+        found = _refine(search, found, search.fits(found))
     return first, found, first_peak
 
 
