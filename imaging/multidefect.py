@@ -18,9 +18,9 @@ record than letting the found defects' echoes follow a directional pattern inste
 path's amplitude a first-order circular harmonic of the receiver's bearing, PATTERN_ORDERS;
 ``_Search.beats_patterns``); otherwise it is ruled out and the search looks further. The pattern
 is only the alternative hypothesis, never what is subtracted: removing the found defects' echoes
-with it (tried, 2026-12-02) cut spurious defects further but also took a third of a weak second
-notch's echoes wherever its paths overlapped the first's, so some of them were lost (mock
-physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A last pass re-locates each
+with it (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
+second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
+were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A last pass re-locates each
 defect (within REFINE_RADIUS_MM) with the others' echoes removed.
 """
 from __future__ import annotations
