@@ -13,6 +13,7 @@ pytest_plugins = [
     "tests.support.mqtt_broker",
     "tests.support.browser_fixtures",
     "tests.support.wheel_fixtures",
+    "tests.support.chaos_summary",
 ]
 
 # Fixtures that start the whole system (mock nodes, a gateway and an API server): a test using one is e2e.
