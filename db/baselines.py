@@ -1,4 +1,8 @@
-"""Active baseline per node: exactly one at a time, every change kept as history."""
+"""Active baseline per node: exactly one at a time, every change kept as history.
+
+A database that queues for an uplink queues every baseline record written or deactivated here
+in the same transaction (``db.uplink_queue.enqueue_baselines``): the deactivated ones first, then
+the new one, after its measurement."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -12,6 +16,7 @@ from db.errors import BaselineError
 from db.measurements import get_measurement
 from db.models import BaselineRow, MeasurementKind, MeasurementRow
 from db.nodes import get_node
+from db.uplink_queue import enqueue_baselines
 
 
 def active_baseline(session: Session, node_id: str) -> BaselineRow | None:
@@ -49,6 +54,9 @@ def set_active_baseline(
     if measurement.traces_pruned_at is not None:
         raise BaselineError(f"measurement {measurement_id} has no traces any more (pruned); it cannot be a baseline")
     now = now or utc_now()
+    deactivated = list(session.scalars(
+        select(BaselineRow).where(BaselineRow.node_id == node_id, BaselineRow.active.is_(True)).order_by(BaselineRow.id)
+    ))
     # Deactivate first, as its own statement, so the unique index never sees two active rows.
     session.execute(
         update(BaselineRow)
@@ -67,7 +75,30 @@ def set_active_baseline(
     )
     session.add(baseline)
     session.flush()
+    enqueue_baselines(session, node_id, [*deactivated, baseline], now=now)
     return baseline
+
+
+def add_library_baseline(
+    session: Session, node_id: str, measurement_id: int, *, created_by: str, reason: str, now: datetime | None = None,
+) -> BaselineRow:
+    """An inactive baseline record: the measurement joins the node's temperature library (its kind
+    becomes ``baseline``) while the active baseline stays. Raises :class:`BaselineError` as
+    :func:`set_active_baseline` does."""
+    get_node(session, node_id)
+    measurement = get_measurement(session, measurement_id)
+    if measurement.node_id != node_id:
+        raise BaselineError(f"measurement {measurement.id} belongs to node {measurement.node_id!r}, not {node_id!r}")
+    if measurement.traces_pruned_at is not None:
+        raise BaselineError(f"measurement {measurement.id} has no traces any more (pruned); it cannot be a baseline")
+    measurement.kind = MeasurementKind.BASELINE
+    now = now or utc_now()
+    row = BaselineRow(node_id=node_id, measurement_id=measurement.id, created_by=created_by, created_at=now,
+                      reason=reason, active=False, deactivated_at=None)
+    session.add(row)
+    session.flush()
+    enqueue_baselines(session, node_id, [row], now=now)
+    return row
 
 
 def baseline_history(session: Session, node_id: str) -> Sequence[BaselineRow]:

@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from db.baselines import set_active_baseline
 from db.measurements import add_event_once, store_measurement
-from db.models import BaselineRow, DetectionRow, MeasurementRow, StateChangeRow, UplinkKind
+from db.models import DetectionRow, MeasurementRow, StateChangeRow, UplinkKind
 from db.nodes import record_node_health
 from db.records import CycleRecord, EventInput
 from db.uplink_queue import QueuePolicy, enqueue, queue_policy, traces_go_up
@@ -53,12 +53,11 @@ def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for:
         detection=record.detection,
         state_change=record.state_change,
     )
-    baseline = None
-    if record.activate_baseline is not None:
-        baseline = set_active_baseline(session, node_id, row.id, created_by="gateway", reason=record.activate_baseline)
     policy = queue_policy(session)
     if policy is not None:  # before the events: a node's records go up in the order they happened
-        _queue_cycle(session, policy, node_id, row, record, baseline)
+        _queue_cycle(session, policy, node_id, row, record)
+    if record.activate_baseline is not None:  # after its measurement: it queues its baseline records itself
+        set_active_baseline(session, node_id, row.id, created_by="gateway", reason=record.activate_baseline)
     events = tuple(
         event for event in (events_for(row.id) if events_for else ()) if add_event_once(session, event, node_id=node_id)
     )
@@ -68,15 +67,16 @@ def store_cycle(session: Session, node_id: str, record: CycleRecord, events_for:
 
 def _queue_cycle(
     session: Session, policy: QueuePolicy, node_id: str, row: MeasurementRow, record: CycleRecord,
-    baseline: BaselineRow | None,
 ) -> None:
-    """The cycle's uplink records: the measurement (with its maps), then its detection, state change, baseline."""
+    """The cycle's uplink records: the measurement (with its maps), then its detection and state change
+    (the baseline it becomes, and the one it replaces, follow: ``set_active_baseline``)."""
     # (The node's own record is queued when the gateway connects to it: upsert_node.)
     detection, state_change = record.detection, record.state_change
     with_traces = traces_go_up(
         policy, kind=record.kind, detection_state=detection.state if detection else None,
         peak_di=detection.peak_di if detection else None, threshold=detection.threshold if detection else None,
-        to_state=state_change.to_state if state_change else None, becomes_baseline=baseline is not None,
+        to_state=state_change.to_state if state_change else None,
+        becomes_baseline=record.activate_baseline is not None,
     )
     enqueue(session, UplinkKind.MEASUREMENT, row.id, node_id=node_id, measurement_id=row.id, with_traces=with_traces)
     if detection is not None:
@@ -85,5 +85,4 @@ def _queue_cycle(
     if state_change is not None:
         change_id = session.scalar(select(StateChangeRow.id).where(StateChangeRow.measurement_id == row.id))
         enqueue(session, UplinkKind.STATE_CHANGE, change_id or row.id, node_id=node_id, measurement_id=row.id)
-    if baseline is not None:
-        enqueue(session, UplinkKind.BASELINE, baseline.id, node_id=node_id, measurement_id=row.id)
+

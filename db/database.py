@@ -151,9 +151,11 @@ class Database:
             return False
         return not busy
 
-    def queue_uplink(self, policy: QueuePolicy) -> None:
-        """From now on every write of this handle also queues what it stores for the uplink
-        (``db.uplink_queue``); the gateway calls it when ``[uplink]`` is configured."""
+    def queue_uplink(self, policy: QueuePolicy | None) -> None:
+        """From now on every write of this handle queues what it stores for the uplink under
+        ``policy`` (``db.uplink_queue``), or nothing (None), whatever ``uplink_config`` says; the
+        gateway calls it at start (and stores its choice there for the other processes:
+        ``db.uplink_queue.store_policy``). A handle never told reads ``uplink_config``."""
         self._writers.configure(info={QUEUE_POLICY: policy})
 
     def schema_revision(self) -> str | None:

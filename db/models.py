@@ -172,6 +172,11 @@ class NodeRow(Base):
     # At the central site (revision 0006): where the node reports from; NULL on a gateway's own database.
     site: Mapped[str | None] = mapped_column(String(64))
     gateway_id: Mapped[str | None] = mapped_column(String(64))
+    # Revision 0011: this database's count of changes to the node's replicated view (an INFO, an admin's
+    # details, (re)commissioning), carried by its node record; at the central site, the revision of the
+    # gateway's node record last applied (NULL: none, or a gateway that sends none).
+    revision: Mapped[int] = mapped_column(Integer, server_default="0", default=0)
+    source_revision: Mapped[int | None] = mapped_column(Integer)
 
     @property
     def never_seen(self) -> bool:
@@ -444,3 +449,19 @@ class TraceRequestRow(Base):
     requested_at: Mapped[datetime]
     answered_at: Mapped[datetime | None]  # when the gateway answered held or pruned
     received_at: Mapped[datetime | None]
+
+
+class UplinkConfigRow(Base):
+    """One row while the gateway owning this database replicates to a centre (revision 0011): its
+    ``send`` policy, so every process writing the database (the gateway's API too) queues what it
+    changes (``db.uplink_queue.queue_policy``). No row: nothing queues."""
+
+    __tablename__ = "uplink_config"
+    __table_args__ = (
+        CheckConstraint("id = 1", name="one_row"),
+        CheckConstraint("send IN ('everything', 'flagged_traces')", name="send"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    send: Mapped[str] = mapped_column(String(32))
+    since: Mapped[datetime]

@@ -1,5 +1,9 @@
 """Nodes: registration from INFO replies, the gateway's view of their health, and what an
-admin decides about them (label, location, notes; decommissioning)."""
+admin decides about them (label, location, notes; decommissioning).
+
+Every change of what a node's uplink record carries beyond its health (an INFO, an admin's
+details, (re)commissioning) raises ``revision`` and, when the database queues for an uplink,
+queues the node's record in the same transaction (``db.uplink_queue``)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -12,7 +16,7 @@ from db.clock import utc_now
 from db.errors import NotFound, StateConflict
 from db.models import NodeRow, NodeState
 from db.records import NodeInfo
-from db.uplink_queue import enqueue_node, queue_policy
+from db.uplink_queue import enqueue_node, enqueue_node_change, queue_policy
 
 
 def get_node(session: Session, node_id: str) -> NodeRow:
@@ -47,7 +51,9 @@ def update_node_details(
         setattr(node, name, value)
     node.details_updated_at = now or utc_now()
     node.details_updated_by = who
+    node.revision += 1
     session.flush()
+    enqueue_node_change(session, node_id, now=node.details_updated_at)
     return node
 
 
@@ -68,17 +74,21 @@ def decommission_node(
     node.decommissioned_by = who
     node.decommission_reason = reason
     node.online = False  # the gateway lets go of it
+    node.revision += 1
     session.flush()
+    enqueue_node_change(session, node_id, now=node.decommissioned_at)
     return node
 
 
-def recommission_node(session: Session, node_id: str) -> NodeRow:
+def recommission_node(session: Session, node_id: str, *, now: datetime | None = None) -> NodeRow:
     """Put a decommissioned node back in service; raises :class:`StateConflict` if it is in service."""
     node = get_node(session, node_id)
     if node.decommissioned_at is None:
         raise StateConflict(f"node {node_id!r} is in service")
     node.decommissioned_at = node.decommissioned_by = node.decommission_reason = None
+    node.revision += 1
     session.flush()
+    enqueue_node_change(session, node_id, now=now)
     return node
 
 
@@ -138,6 +148,7 @@ def upsert_node(session: Session, info: NodeInfo, *, seen_at: datetime | None = 
     node.geometry = info.geometry.model_dump(mode="json")
     node.last_seen_at = seen_at
     node.online = True
+    node.revision = (node.revision or 0) + 1
     session.flush()
     if queue_policy(session) is not None:
         enqueue_node(session, info.node_id, now=seen_at, first_answer=first_answer)

@@ -2,14 +2,16 @@
 
 The same outbox discipline as alert delivery: a record is queued in the transaction that
 writes the fact it replicates (``store_cycle`` for a measurement and everything decided about
-it, ``upsert_node`` for a node's identity, ``add_event`` for an alert event), so a fact is
+it, ``upsert_node`` for a node's identity, ``add_event`` for an alert event, and what an
+operator changes: a node's details and (re)commissioning, a baseline set or added), so a fact is
 either stored and queued or neither. It is marked ``sent`` only after the centre acknowledged
 it, so a crash at any point re-sends (the centre de-duplicates by the record's uid) and never
 loses anything.
 
-Queueing is switched on per database handle (:meth:`db.database.Database.queue_uplink`, which
-the gateway calls when ``[uplink]`` is configured): a gateway without an uplink writes no
-queue. What a record carries is decided here (:func:`traces_go_up`, pure); what it looks like
+Queueing is switched on by the gateway (:meth:`db.database.Database.queue_uplink`, which it calls
+at start with the policy of its ``[uplink]``, or None): its own handle knows, and the choice is
+stored in the database (``uplink_config``) for every other process writing it (the gateway's
+API). A gateway without an uplink writes no queue. What a record carries is decided here (:func:`traces_go_up`, pure); what it looks like
 on the wire is the sender's business (``gateway/uplink``).
 
 Order and fairness (:func:`next_batch`): each node's records go in ``id`` order (the order they
@@ -19,7 +21,7 @@ node's live records.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal, cast
@@ -33,7 +35,9 @@ from db.models import (
     EventRow,
     MeasurementKind,
     MeasurementRow,
+    NodeRow,
     NodeState,
+    UplinkConfigRow,
     UplinkKind,
     UplinkRow,
     UplinkStatus,
@@ -56,9 +60,34 @@ class QueuePolicy:
 
 
 def queue_policy(session: Session) -> QueuePolicy | None:
-    """The policy of a session that queues for the uplink; None when it does not queue."""
-    policy = session.info.get(QUEUE_POLICY)
-    return policy if isinstance(policy, QueuePolicy) else None
+    """The policy of a session that queues for the uplink; None when it does not queue.
+
+    A handle the gateway told (:meth:`db.database.Database.queue_uplink`, with a policy or None)
+    knows it; any other handle on the database (the gateway's API) reads the gateway's choice
+    from ``uplink_config``, in the session's transaction, so an operator's change is queued
+    exactly when the gateway replicates.
+    """
+    if QUEUE_POLICY in session.info:
+        policy = session.info[QUEUE_POLICY]
+        return policy if isinstance(policy, QueuePolicy) else None
+    stored = session.get(UplinkConfigRow, 1)
+    if stored is None or stored.send not in ("everything", "flagged_traces"):
+        return None
+    return QueuePolicy(cast(Send, stored.send))
+
+
+def store_policy(session: Session, policy: QueuePolicy | None, *, now: datetime | None = None) -> None:
+    """Record in the database whether (and how) its gateway replicates: every process writing it queues
+    accordingly (``queue_policy``). The gateway calls it at start, with None when it has no uplink."""
+    stored = session.get(UplinkConfigRow, 1)
+    if policy is None:
+        if stored is not None:
+            session.delete(stored)
+    elif stored is None:
+        session.add(UplinkConfigRow(id=1, send=policy.send, since=now or utc_now()))
+    elif stored.send != policy.send:
+        stored.send, stored.since = policy.send, now or utc_now()
+    session.flush()
 
 
 def traces_go_up(
@@ -132,6 +161,51 @@ def enqueue_node(session: Session, node_id: str, *, now: datetime | None = None,
     if first_answer:
         _enqueue_held_events(session, node_id, now=now)
     return queued
+
+
+def enqueue_node_change(session: Session, node_id: str, *, now: datetime | None = None) -> bool:
+    """An admin changed what the node's record carries (details, (re)commissioning): its record is
+    queued as :func:`enqueue_node` does, when the session queues at all and the node has answered
+    (a node never seen has no record yet; its first INFO's carries the change). True if queued."""
+    if queue_policy(session) is None:
+        return False
+    never_answered = session.scalar(select(NodeRow.first_seen_at).where(NodeRow.node_id == node_id)) is None
+    return False if never_answered else enqueue_node(session, node_id, now=now)
+
+
+def enqueue_baselines(
+    session: Session, node_id: str, baselines: Sequence[BaselineRow], *, now: datetime | None = None,
+) -> None:
+    """Queue these baseline records of the node (a new one, and those it deactivated), in order.
+
+    Nothing before the node's first record: that one brings every baseline stored until then
+    (:func:`enqueue_node`). A baseline's measurement must be at the centre with its traces (a map
+    made against it can only be reproduced with them): unless a record of it that carries them is
+    queued or sent, it is queued again with them first (the centre adds traces to a measurement it
+    holds without, or stores it new).
+    """
+    if queue_policy(session) is None or not baselines:
+        return
+    node_queued = session.scalar(
+        select(UplinkRow.id).where(UplinkRow.node_id == node_id, UplinkRow.kind == UplinkKind.NODE).limit(1)
+    )
+    if node_queued is None:
+        return
+    for baseline in baselines:
+        with_traces = session.scalar(
+            select(UplinkRow.id).where(
+                UplinkRow.measurement_id == baseline.measurement_id, UplinkRow.kind == UplinkKind.MEASUREMENT,
+                UplinkRow.with_traces.is_(True), UplinkRow.status != UplinkStatus.REFUSED,
+            ).limit(1)
+        )
+        if with_traces is None:
+            pruned = session.scalar(
+                select(MeasurementRow.traces_pruned_at).where(MeasurementRow.id == baseline.measurement_id)
+            )
+            enqueue(session, UplinkKind.MEASUREMENT, baseline.measurement_id, node_id=node_id,
+                    measurement_id=baseline.measurement_id, with_traces=pruned is None, now=now)
+        enqueue(session, UplinkKind.BASELINE, baseline.id, node_id=node_id, measurement_id=baseline.measurement_id,
+                now=now)
 
 
 def _enqueue_held_events(session: Session, node_id: str, *, now: datetime | None) -> None:
@@ -243,8 +317,15 @@ def rotate(nodes: Sequence[str], after: str | None) -> list[str]:
     return [*nodes[start:], *nodes[:start]]
 
 
-def mark_sent(session: Session, ids: Sequence[int], *, now: datetime | None = None) -> int:
-    """The centre acknowledged these records; returns how many were still pending."""
+def mark_sent(
+    session: Session, ids: Sequence[int], *, now: datetime | None = None, node_revisions: Mapping[str, int] | None = None,
+) -> int:
+    """The centre acknowledged these records; returns how many were still pending.
+
+    ``node_revisions``: the revision each node record of the batch carried. A node changed since
+    its record was read (an admin's change committed while the batch was on its way found that
+    record pending and queued none) is queued again, so no change is left behind.
+    """
     if not ids:
         return 0
     result = session.execute(
@@ -253,6 +334,10 @@ def mark_sent(session: Session, ids: Sequence[int], *, now: datetime | None = No
         .values(status=UplinkStatus.SENT, sent_at=now or utc_now(), last_error=None)
         .execution_options(synchronize_session=False)
     )
+    for node_id, sent_revision in (node_revisions or {}).items():
+        revision = session.scalar(select(NodeRow.revision).where(NodeRow.node_id == node_id))
+        if revision is not None and revision > sent_revision:
+            enqueue_node(session, node_id, now=now)
     return _affected(result)
 
 

@@ -16,7 +16,7 @@ from db.errors import DatabaseDamaged, ForeignDatabase, SchemaOutOfDate, Storage
 from db.measurements import add_event_once
 from db.nodes import register_configured_node
 from db.retention import prune_traces
-from db.uplink_queue import QueuePolicy, queue_stats
+from db.uplink_queue import QueuePolicy, queue_stats, store_policy
 from db.urls import safe_database_url
 from gateway.clock import STEP_TOLERANCE_S, Clock, ElapsedWall, SystemClock
 from gateway.config import GatewaySettings
@@ -45,8 +45,9 @@ class Gateway:
         self.heartbeats = Heartbeats()
         # The uplink: every write from here on queues what it stores, before any worker writes.
         self.uplink: UplinkSender | None = None
+        self.queue_policy = None if settings.uplink is None else QueuePolicy(settings.uplink.send)
+        db.queue_uplink(self.queue_policy)
         if settings.uplink is not None:
-            db.queue_uplink(QueuePolicy(settings.uplink.send))
             self.uplink = UplinkSender(settings.uplink, db, stop=self.stop, heartbeats=self.heartbeats)
         self.workers = [
             NodeWorker(
@@ -99,14 +100,19 @@ class Gateway:
     def register_nodes(self) -> list[str]:
         """Every configured node gets its row before any is polled (never seen until it answers), so a
         node that never answers is listed, counted and reported offline; returns the ones new here.
-        A storage error leaves it to the worker, at the node's first failed cycle or first answer."""
+        A storage error leaves it to the worker, at the node's first failed cycle or first answer.
+
+        The same transaction stores whether this gateway replicates (``uplink_config``), so the
+        gateway's API queues an operator's changes exactly when there is an uplink."""
         now = utc_now()
         try:
             with self.db.write() as session:
+                store_policy(session, self.queue_policy, now=now)
                 added = [node.id for node in self.settings.nodes
                          if register_configured_node(session, node.id, port_url=node.url, now=now)]
         except StorageError as exc:
-            log.error("could not register the configured nodes (each is registered when it is polled): %s", exc)
+            log.error("could not register the configured nodes (each is registered when it is polled) nor store "
+                      "whether the uplink replicates the API's changes: %s", exc)
             return []
         if added:
             log.info("registered %d configured node(s) not seen yet: %s", len(added), ", ".join(added))

@@ -4,11 +4,9 @@ from __future__ import annotations
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from db.baselines import baseline_history, set_active_baseline
-from db.clock import utc_now
-from db.errors import BaselineError, NotFound
-from db.measurements import get_measurement
-from db.models import BaselineRow, MeasurementKind
+from db.baselines import add_library_baseline, baseline_history, set_active_baseline
+from db.errors import NotFound
+from db.models import BaselineRow
 from db.nodes import get_node
 from service import schemas
 
@@ -31,24 +29,7 @@ def create(session: Session, node_id: str, request: schemas.BaselineCreate, *, w
     if request.activate:
         row = set_active_baseline(session, node_id, request.measurement_id, created_by=who, reason=request.reason)
         return schemas.Baseline.model_validate(row)
-    get_node(session, node_id)
-    measurement = get_measurement(session, request.measurement_id)
-    if measurement.node_id != node_id:
-        raise BaselineError(f"measurement {measurement.id} belongs to node {measurement.node_id!r}, not {node_id!r}")
-    if measurement.traces_pruned_at is not None:
-        raise BaselineError(f"measurement {measurement.id} has no traces any more (pruned); it cannot be a baseline")
-    measurement.kind = MeasurementKind.BASELINE
-    row = BaselineRow(
-        node_id=node_id,
-        measurement_id=measurement.id,
-        created_by=who,
-        created_at=utc_now(),
-        reason=request.reason,
-        active=False,
-        deactivated_at=None,
-    )
-    session.add(row)
-    session.flush()
+    row = add_library_baseline(session, node_id, request.measurement_id, created_by=who, reason=request.reason)
     return schemas.Baseline.model_validate(row)
 
 
