@@ -5,9 +5,12 @@ written in order, and the first one that is refused (another gateway's node, a r
 record the centre does not hold, a map without its pixels) raises :class:`IngestRefused` naming
 it, so the transaction rolls back and nothing of the batch is kept. Records the centre already
 holds (by their edge-made uid) are counted as duplicates and left untouched, so a retried or
-replayed batch changes nothing; the one exception is a measurement stored without its traces,
+replayed batch changes nothing; the exceptions are a measurement stored without its traces,
 which takes them from a record of the same uid that carries them (traces on demand:
-``uplink.contract.resent_measurement``, ``db.trace_requests``).
+``uplink.contract.resent_measurement``, ``db.trace_requests``), and a baseline deactivated at the
+gateway after it was sent (``uplink.contract.resent_baseline``: only ``active`` and
+``deactivated_at`` change). A node record updates the node unless it is older than what the centre
+holds (``uplink.contract.node_record_is_stale``: by revision, then ``last_seen_at``).
 """
 from __future__ import annotations
 
@@ -41,12 +44,15 @@ from db.trace_requests import mark_received
 from uplink.contract import (
     AlertEventRecord,
     BaselineRecord,
+    BaselineView,
     DetectionRecord,
     IngestBatch,
     MeasurementRecord,
     NodeRecord,
     StateChangeRecord,
     StoredTraces,
+    node_record_is_stale,
+    resent_baseline,
     resent_measurement,
 )
 
@@ -85,7 +91,8 @@ class IngestOutcome:
 
 # The node fields a node record sets (the rest of a NodeRow is the centre's own: details, link).
 _NODE_FIELDS = ("firmware", "protocol_version", "n_channels", "fs_hz", "geometry", "first_seen_at", "last_seen_at",
-                "online", "latest_di_peak", "latest_threshold", "label", "location", "decommissioned_at")
+                "online", "latest_di_peak", "latest_threshold", "label", "location", "decommissioned_at",
+                "decommissioned_by", "decommission_reason")
 
 
 class _Batch:
@@ -132,6 +139,7 @@ class _Batch:
     def node(self, record: NodeRecord) -> Literal["accepted", "duplicate", "stale"]:
         values = {name: getattr(record, name) for name in _NODE_FIELDS}
         values["state"] = NodeState(record.state)
+        values["source_revision"] = record.revision
         node = self.session.get(NodeRow, record.node_id)
         if node is None:
             self.session.add(NodeRow(node_id=record.node_id, port_url=f"uplink:{self.batch.gateway_id}",
@@ -139,7 +147,7 @@ class _Batch:
                                      watched_since=record.first_seen_at, **values))
             return "accepted"
         self.check_owner(node)
-        if node.last_seen_at is not None and record.last_seen_at < node.last_seen_at:
+        if node_record_is_stale(node.source_revision, node.last_seen_at, record):
             return "stale"
         if all(getattr(node, name) == value for name, value in values.items()):
             return "duplicate"
@@ -216,6 +224,36 @@ class _Batch:
         self.session.flush()
         self.remember(record.uid, record.kind, row.id)
 
+    def baseline_again(self, record: BaselineRecord) -> Literal["accepted", "duplicate", "stale"]:
+        """A baseline held already: deactivated if the gateway deactivated it since; nothing else changes."""
+        self.own_node(record.node_id)
+        row = self.session.get(BaselineRow, int(self.central_id(record.uid)))
+        if row is None or row.node_id != record.node_id:
+            raise _Refused("invalid", f"baseline {record.uid!r} is not node {record.node_id!r}'s here")
+        stored = BaselineView(row.node_id, self.measurement_uid(row.measurement_id), row.created_by, row.created_at,
+                              row.reason, row.active, row.deactivated_at)
+        try:
+            outcome = resent_baseline(stored, BaselineView.of(record))
+        except ValueError as exc:
+            raise _Refused("invalid", str(exc)) from None
+        if outcome != "deactivate":
+            return outcome
+        row.active, row.deactivated_at = False, record.deactivated_at
+        self.session.flush()
+        return "accepted"
+
+    def central_id(self, uid: str) -> str:
+        row = self.session.get(IngestedRecordRow, uid)
+        if row is None:  # the caller saw it held
+            raise _Refused("unknown-reference", f"{uid!r} is not known here")
+        return row.central_id
+
+    def measurement_uid(self, measurement_id: int) -> str:
+        """The edge's uid of a measurement held here."""
+        uid = self.session.scalar(select(IngestedRecordRow.uid).where(
+            IngestedRecordRow.kind == "measurement", IngestedRecordRow.central_id == str(measurement_id)).limit(1))
+        return uid if uid is not None else f"(measurement {measurement_id} here)"
+
     def detection(self, record: DetectionRecord) -> None:
         self.own_node(record.node_id)
         measurement_id = self.measurement_id(record.measurement_uid)
@@ -281,7 +319,12 @@ def ingest_batch(session: Session, batch: IngestBatch, *, key_site: str, alert_s
                 outcome = work.node(record)
                 session.flush()
             elif record.uid in held:
-                outcome = work.measurement_again(record) if isinstance(record, MeasurementRecord) else "duplicate"
+                if isinstance(record, MeasurementRecord):
+                    outcome = work.measurement_again(record)
+                elif isinstance(record, BaselineRecord):
+                    outcome = work.baseline_again(record)
+                else:
+                    outcome = "duplicate"
             else:
                 getattr(work, record.kind)(record)
                 outcome = "accepted"

@@ -175,7 +175,7 @@ class NodeRow(Base):
     # Revision 0011: this database's count of changes to the node's replicated view (an INFO, an admin's
     # details, (re)commissioning), carried by its node record; at the central site, the revision of the
     # gateway's node record last applied (NULL: none, or a gateway that sends none).
-    revision: Mapped[int] = mapped_column(Integer, server_default="0", default=0)
+    revision: Mapped[int] = mapped_column(Integer, server_default="0")
     source_revision: Mapped[int | None] = mapped_column(Integer)
 
     @property

@@ -13,10 +13,14 @@ Rules the models state and check:
   measurement, ...); a reference must name a record earlier in the same batch or one the centre
   already holds. The gateway therefore sends in its own order: node, then per node its
   measurements with their maps, baselines, detections, state changes and alert events.
-* ``node`` records are the node's latest view, applied as an update (newest ``last_seen_at``
-  wins); every other kind is immutable once stored, with one exception: a measurement stored
-  without its traces takes them from a later record of the same uid that carries them (traces
-  on demand, :func:`resent_measurement`); nothing else of it changes.
+* ``node`` records are the node's latest view, applied as an update: the newest by
+  (``revision``, ``last_seen_at``) wins (:func:`node_record_is_stale`; the gateway raises a
+  node's revision at every change of its record beyond its health, so an admin's change wins
+  over an older record with the same ``last_seen_at``). Every other kind is immutable once
+  stored, with two exceptions: a measurement stored without its traces takes them from a later
+  record of the same uid that carries them (traces on demand, :func:`resent_measurement`), and
+  a baseline takes its deactivation (``active``, ``deactivated_at``) from a later record of the
+  same uid (:func:`resent_baseline`); nothing else of either changes.
 * traces and map pixels travel as the gateway stores them (``shuffle-zlib-v1`` compressed
   bytes, base64), with their SHA-256, which the centre checks; a measurement's traces may be
   omitted (``data`` null) when the gateway's uplink policy sends no traces for it.
@@ -31,6 +35,7 @@ import binascii
 import hashlib
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Annotated, Any, Final, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -128,6 +133,24 @@ class NodeRecord(_Model):
     label: str | None = Field(default=None, max_length=128)
     location: str | None = Field(default=None, max_length=256)
     decommissioned_at: AwareDatetime | None = None
+    decommissioned_by: str | None = Field(default=None, max_length=128)
+    decommission_reason: str | None = Field(default=None, max_length=2000)
+    revision: int = Field(
+        default=0, ge=0,
+        description="the gateway's count of changes to this record beyond the node's health (INFO, details, "
+                    "(re)commissioning); 0 from a gateway that counts none",
+    )
+
+
+def node_record_is_stale(
+    held_revision: int | None, held_last_seen_at: datetime | None, record: NodeRecord,
+) -> bool:
+    """Whether a node record is older than the centre's view of the node (pure): ordered by
+    (``revision``, ``last_seen_at``), both of which only grow at the gateway; a view the centre got
+    from no record, or from a gateway that sends no revision, counts as revision 0."""
+    if held_last_seen_at is None:
+        return False
+    return (record.revision, record.last_seen_at) < (held_revision or 0, held_last_seen_at)
 
 
 class MeasurementSettings(_Model):
@@ -181,6 +204,49 @@ class BaselineRecord(_Model):
     reason: str
     active: bool
     deactivated_at: AwareDatetime | None = None
+
+
+@dataclass(frozen=True)
+class BaselineView:
+    """A baseline record's fields, as sent or as the centre holds them (its measurement by uid)."""
+
+    node_id: str
+    measurement_uid: str
+    created_by: str
+    created_at: datetime
+    reason: str
+    active: bool
+    deactivated_at: datetime | None
+
+    @classmethod
+    def of(cls, record: BaselineRecord) -> BaselineView:
+        return cls(record.node_id, record.measurement_uid, record.created_by, record.created_at, record.reason,
+                   record.active, record.deactivated_at)
+
+
+ResentBaseline = Literal["deactivate", "duplicate", "stale"]
+
+
+def resent_baseline(stored: BaselineView, sent: BaselineView) -> ResentBaseline:
+    """A baseline record whose uid the centre holds already (pure).
+
+    A baseline only ever goes from active to inactive at the gateway (setting another baseline
+    makes a new record), so: ``deactivate`` when the stored one is active and the record says it
+    was deactivated (the centre takes ``active`` and ``deactivated_at``); ``duplicate`` when they
+    agree, or both are inactive (the centre may have deactivated it itself when the newer active
+    baseline arrived first: it keeps its time); ``stale`` when the record says active for a
+    baseline the centre holds inactive (an older view, ignored). Raises ValueError when anything
+    else differs (node, measurement, who, when, why): those never change.
+    """
+    fixed = ("node_id", "measurement_uid", "created_by", "created_at", "reason")
+    changed = [name for name in fixed if getattr(stored, name) != getattr(sent, name)]
+    if changed:
+        raise ValueError(f"a stored baseline does not change; this record changes its {', '.join(changed)}")
+    if stored.active and not sent.active:
+        return "deactivate"
+    if not stored.active and sent.active:
+        return "stale"
+    return "duplicate"
 
 
 class DetectionRecord(_Model):
@@ -264,7 +330,8 @@ class IngestResult(_Model):
     batch_id: uuid.UUID
     accepted: int = Field(description="records stored now (nodes: created or updated)")
     duplicates: int = Field(description="records the centre already held (a retried batch: all of them)")
-    stale: int = Field(default=0, description="node records older than the centre's view of the node, ignored")
+    stale: int = Field(default=0, description="node records older than the centre's view of the node, and "
+                                              "baseline records re-activating one it holds deactivated: ignored")
 
 
 class BadRecord(_Model):

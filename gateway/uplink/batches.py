@@ -10,14 +10,14 @@ import gzip
 import json
 import uuid
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from pydantic import ValidationError
 
 from alerts.backoff import parse_retry_after
 from gateway.uplink.records import Wire
-from uplink.contract import BadRecord, IngestBatch, IngestResult
+from uplink.contract import BadRecord, IngestBatch, IngestResult, NodeRecord
 
 BODY_OVERHEAD_BYTES = 256  # the batch's own members around its records
 GZIP_LEVEL = 1  # the traces are compressed already; gzip mostly undoes base64's 4/3
@@ -29,6 +29,7 @@ class Batch:
     row_ids: tuple[int, ...]  # the queue rows, in record order (records[i] is row_ids[i])
     nodes: tuple[str | None, ...]
     body: bytes  # the JSON body, uncompressed
+    node_revisions: Mapping[str, int] = field(default_factory=dict)  # the revision each node record carries
 
     def __len__(self) -> int:
         return len(self.row_ids)
@@ -68,8 +69,9 @@ def build_batch(
         return None
     batch_id = batch_id or uuid.uuid4()
     batch = IngestBatch(gateway_id=gateway_id, site=site, batch_id=batch_id, records=[w.record for w in chosen])
+    revisions = {w.record.node_id: w.record.revision for w in chosen if isinstance(w.record, NodeRecord)}
     return Batch(batch_id, tuple(w.row_id for w in chosen), tuple(w.node_id for w in chosen),
-                 batch.model_dump_json().encode())
+                 batch.model_dump_json().encode(), revisions)
 
 
 OutcomeKind = Literal["stored", "bad_record", "too_large", "bad_batch", "retry", "misconfigured"]

@@ -134,7 +134,7 @@ def _measurement_uid(gw: str, measurement_id: int | None) -> str | None:
 
 
 def _node(node: NodeRow, uid: str) -> NodeRecord:
-    # Queued only at an INFO (upsert_node); a node registered from the configuration that never answered
+    # Queued at an INFO (upsert_node) and at an admin's change once it answered; a node registered from the configuration that never answered
     # has nothing the contract could carry (no channels, no geometry), so it is not sent.
     if (node.firmware is None or node.protocol_version is None or node.n_channels is None or node.fs_hz is None
             or node.geometry is None or node.first_seen_at is None or node.last_seen_at is None):
@@ -144,7 +144,8 @@ def _node(node: NodeRow, uid: str) -> NodeRecord:
         n_channels=node.n_channels, fs_hz=node.fs_hz, geometry=dict(node.geometry), first_seen_at=node.first_seen_at,
         last_seen_at=node.last_seen_at, online=node.online, state=node.state.value,
         latest_di_peak=node.latest_di_peak, latest_threshold=node.latest_threshold, label=node.label,
-        location=node.location, decommissioned_at=node.decommissioned_at,
+        location=node.location, decommissioned_at=node.decommissioned_at, decommissioned_by=node.decommissioned_by,
+        decommission_reason=node.decommission_reason, revision=node.revision,
     )
 
 

@@ -227,7 +227,7 @@ class UplinkSender:
         s = self.settings
         if outcome.kind == "stored":
             with self.database.write() as session:
-                mark_sent(session, batch.row_ids, now=self.clock())
+                mark_sent(session, batch.row_ids, now=self.clock(), node_revisions=batch.node_revisions)
             self._stored(batch, outcome)
             return 0.0  # more may be waiting: look again at once
         self.stats.failures += 1
