@@ -15,12 +15,13 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from db.models import DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow
+from db.models import BaselineRow, DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow
 from tests.support.api_fixtures import assert_problem
 from tests.support.central_site import Centre, serve_centre
 from tests.support.db_fixtures import T0
 from tests.support.ingest_batches import (
     alert_record,
+    baseline_record,
     batch_of,
     detection_record,
     measurement_record,
@@ -136,6 +137,51 @@ def test_a_node_record_older_than_the_centres_view_is_ignored(centre: Centre):
     assert centre.post(batch_of("gw-n1", "north", [older]), centre.north).json()["stale"] == 1
     with centre.database.session() as session:
         assert session.get(NodeRow, "pipe-1").state.value == "damage"
+
+
+def test_a_later_admin_change_wins_over_an_older_node_record_with_the_same_last_seen_at(centre: Centre):
+    seen = T0 + timedelta(hours=1)
+    assert centre.post(batch_of("gw-n1", "north", [node_record("gw-n1", "pipe-1", seen_at=seen, revision=4)]),
+                       centre.north).json()["accepted"] == 1
+    decommissioned = node_record("gw-n1", "pipe-1", seen_at=seen, revision=5, label="Line 3",
+                                 decommissioned_at=seen + timedelta(minutes=5), decommissioned_by="alice",
+                                 decommission_reason="pipe replaced")
+    assert centre.post(batch_of("gw-n1", "north", [decommissioned]), centre.north).json()["accepted"] == 1
+    # The older view again (a replay), even with a later last_seen_at: ignored.
+    replay = node_record("gw-n1", "pipe-1", seen_at=seen + timedelta(minutes=1), revision=4)
+    assert centre.post(batch_of("gw-n1", "north", [replay]), centre.north).json()["stale"] == 1
+    assert centre.post(batch_of("gw-n1", "north", [decommissioned]), centre.north).json()["duplicates"] == 1
+
+    node = centre.get("/nodes/pipe-1").json()
+    assert node["details"]["label"] == "Line 3"
+    assert node["decommissioned"]["by"] == "alice" and node["decommissioned"]["reason"] == "pipe replaced"
+    # Later cycles at the same revision move last_seen_at on: applied.
+    later = decommissioned.model_copy(update={"last_seen_at": seen + timedelta(hours=2), "online": False})
+    assert centre.post(batch_of("gw-n1", "north", [later]), centre.north).json()["accepted"] == 1
+
+
+def test_a_baseline_resent_takes_its_deactivation_and_nothing_else(centre: Centre):
+    history = [node_record("gw-n1", "pipe-1"), measurement_record("gw-n1", "pipe-1", 1),
+               measurement_record("gw-n1", "pipe-1", 2), baseline_record("gw-n1", "pipe-1", 1, 1)]
+    assert centre.post(batch_of("gw-n1", "north", history), centre.north).status_code == 200
+    off_at = T0 + timedelta(days=3)
+    deactivated = baseline_record("gw-n1", "pipe-1", 1, 1, active=False, deactivated_at=off_at)
+    new = baseline_record("gw-n1", "pipe-1", 2, 2, reason="after the repair")
+    stored = centre.post(batch_of("gw-n1", "north", [deactivated, new]), centre.north).json()
+    assert (stored["accepted"], stored["duplicates"]) == (2, 0)
+    assert centre.post(batch_of("gw-n1", "north", [deactivated, new]), centre.north).json()["duplicates"] == 2
+    # An older view that has it active is ignored; one that changes what it is, refused.
+    assert centre.post(batch_of("gw-n1", "north", [baseline_record("gw-n1", "pipe-1", 1, 1)]),
+                       centre.north).json()["stale"] == 1
+    rewritten = baseline_record("gw-n1", "pipe-1", 1, 2, active=False, deactivated_at=off_at)
+    body = assert_problem(centre.post(batch_of("gw-n1", "north", [rewritten]), centre.north), 422, "ingest-bad-record")
+    assert "measurement_uid" in body["bad_record"]["error"]
+
+    listed = centre.get("/nodes/pipe-1/baselines").json()
+    assert [(b["reason"], b["active"]) for b in listed] == [("after the repair", True), ("commissioning", False)]
+    with centre.database.session() as session:
+        first = session.scalars(select(BaselineRow).order_by(BaselineRow.id)).first()
+        assert first is not None and first.deactivated_at == off_at
 
 
 def test_gzip_bodies_are_accepted_and_the_limit_holds_after_inflating(sqlite_url: str):

@@ -9,6 +9,7 @@ from db.blobs import PIXEL_DTYPE, TRACE_DTYPE, encode_array
 from tests.support.db_fixtures import GRID, T0, sample_codes, sample_pixels
 from uplink.contract import (
     AlertEventRecord,
+    BaselineRecord,
     Blob,
     DetectionRecord,
     DiMapRecord,
@@ -27,13 +28,21 @@ def blob(stored: bytes, dtype: str, *, send: bool = True) -> Blob:
                    nbytes=len(stored))
 
 
-def node_record(gateway: str, node_id: str, *, seen_at: datetime = T0, state: str = "ok") -> NodeRecord:
+def node_record(gateway: str, node_id: str, *, seen_at: datetime = T0, state: str = "ok",
+                **admin: object) -> NodeRecord:
     return NodeRecord(uid=record_uid(gateway, "node", node_id), node_id=node_id, firmware="1.4.2", protocol_version=2,
                       n_channels=8, fs_hz=2.0e6, geometry={"rx_angles_deg": [i * 45.0 for i in range(8)],
                                                            "tx_angles_deg": [0.0], "tx_rx_distance_mm": 500.0,
                                                            "circumference_mm": 690.8, "pipe_length_mm": 6000.0,
                                                            "tx_axial_mm": 1000.0},
-                      first_seen_at=T0, last_seen_at=seen_at, online=True, state=state)  # type: ignore[arg-type]
+                      first_seen_at=T0, last_seen_at=seen_at, online=True, state=state, **admin)  # type: ignore[arg-type]
+
+
+def baseline_record(gateway: str, node_id: str, local_id: int, measurement_local_id: int, *, active: bool = True,
+                    deactivated_at: datetime | None = None, reason: str = "commissioning") -> BaselineRecord:
+    return BaselineRecord(uid=record_uid(gateway, "baseline", local_id), node_id=node_id,
+                          measurement_uid=record_uid(gateway, "measurement", measurement_local_id), created_by="gateway",
+                          created_at=T0, reason=reason, active=active, deactivated_at=deactivated_at)
 
 
 def measurement_record(gateway: str, node_id: str, local_id: int, *, traces: bool = True, with_map: bool = False,

@@ -5,13 +5,16 @@ import base64
 import hashlib
 import uuid
 import zlib
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from pydantic import ValidationError
 
+from tests.support.db_fixtures import T0
+from tests.support.ingest_batches import node_record
 from uplink.contract import (
     MAX_RECORDS_PER_BATCH,
+    BaselineView,
     Blob,
     DetectionRecord,
     IngestBatch,
@@ -19,7 +22,9 @@ from uplink.contract import (
     NodeRecord,
     StoredTraces,
     TraceAnswers,
+    node_record_is_stale,
     record_uid,
+    resent_baseline,
     resent_measurement,
 )
 
@@ -146,3 +151,30 @@ def test_trace_answers_name_only_the_gateways_own_measurements():
         TraceAnswers(gateway_id="gw-a", site="north", answers=[{**answer, "answer": "maybe"}])
     with pytest.raises(ValidationError):
         TraceAnswers(gateway_id="gw-a", site="north", answers=[])
+
+
+def test_node_records_are_ordered_by_revision_then_last_seen_at():
+    later = T0 + timedelta(minutes=1)
+    admin_change = node_record("gw-n1", "pipe-1", seen_at=T0, revision=3)
+    assert not node_record_is_stale(2, T0, admin_change)  # an admin's change, last_seen_at unmoved: it wins
+    assert not node_record_is_stale(3, T0, admin_change)  # the same view again: not stale (a duplicate)
+    assert node_record_is_stale(4, T0, admin_change)
+    assert node_record_is_stale(3, later, admin_change)  # same revision, older last_seen_at
+    assert not node_record_is_stale(None, None, admin_change)  # nothing held yet
+    assert not node_record_is_stale(None, T0, node_record("gw-n1", "pipe-1", seen_at=later))  # a gateway without revisions
+    assert node_record_is_stale(None, later, node_record("gw-n1", "pipe-1", seen_at=T0))
+
+
+def test_a_resent_baseline_may_only_be_deactivated():
+    active = BaselineView("pipe-1", "gw-n1/measurement/1", "gateway", T0, "commissioning", True, None)
+    off = BaselineView("pipe-1", "gw-n1/measurement/1", "gateway", T0, "commissioning", False, T0 + timedelta(days=1))
+    assert resent_baseline(active, off) == "deactivate"
+    assert resent_baseline(active, active) == "duplicate"
+    assert resent_baseline(off, off) == "duplicate"
+    assert resent_baseline(off, active) == "stale"  # an older view: the gateway never re-activates a baseline
+    assert resent_baseline(off, BaselineView(*[*vars(off).values()][:6], T0 + timedelta(days=2))) == "duplicate"
+    for name, value in (("measurement_uid", "gw-n1/measurement/2"), ("reason", "edited"), ("created_by", "bob"),
+                        ("created_at", T0 + timedelta(seconds=1)), ("node_id", "pipe-2")):
+        changed = BaselineView(**{**vars(off), name: value})
+        with pytest.raises(ValueError, match=name):
+            resent_baseline(active, changed)
