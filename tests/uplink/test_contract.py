@@ -10,7 +10,6 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from pydantic import ValidationError
 
-from tests.support.db_fixtures import T0
 from tests.support.ingest_batches import node_record
 from uplink.contract import (
     MAX_RECORDS_PER_BATCH,
