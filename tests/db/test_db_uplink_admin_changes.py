@@ -14,8 +14,8 @@ from db.models import MeasurementKind, NodeRow, UplinkKind, UplinkRow, UplinkSta
 from db.nodes import decommission_node, recommission_node, register_configured_node, update_node_details, upsert_node
 from db.records import CycleRecord
 from db.uplink_queue import QueuePolicy, mark_sent, next_batch, queue_policy, store_policy
-from tests.db.test_db_uplink_queue import acquisition, commission_and_flag, queued
 from tests.support.db_fixtures import T0, node_info
+from tests.support.uplink_records import acquisition, commission_and_flag, queued
 
 
 @pytest.fixture
