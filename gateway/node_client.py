@@ -194,7 +194,7 @@ class NodeClient:
         self._info: InfoReply | None = None
         self.version: int | None = None  # negotiated by info()
         self.frame_errors = 0
-        self.retried = 0
+        self.retried = 0  # commands sent again and chunks asked for again (lost, late or corrupt replies)
         self.busy_replies = 0
         self._decoder = FrameDecoder()
         self._transport = SerialTransport(url, baudrate=baudrate, exclusive=exclusive)
@@ -458,6 +458,7 @@ class NodeClient:
             if missing and not self._known_info().has(CAP_CHUNK_RETRANSMIT):
                 wanted = ()  # the node sends whole transfers only: read it all again, keep what arrived
                 rerequested += len(missing)
+                self.retried += len(missing)
                 continue
             if not missing:
                 try:
@@ -467,7 +468,9 @@ class NodeClient:
                     if crc_failures > 1:
                         raise TransferError(f"{exc} (after re-reading the whole transfer)") from exc
                     assembler, wanted = None, ()
+                    self.retried += meta.n_chunks  # every chunk is read again
                     continue
             wanted = tuple(missing[:MAX_CHUNK_LIST])
             rerequested += len(wanted)
+            self.retried += len(wanted)  # chunks sent again count as retries (the metric says so)
         raise TransferError(f"{type(first).__name__}: chunks still missing after {self.transfer_rounds} rounds")
