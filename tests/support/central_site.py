@@ -4,6 +4,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import httpx
 from sqlalchemy import func, select
@@ -13,6 +14,15 @@ from db.database import Database, open_database
 from db.models import Role
 from service.settings import ApiSettings
 from tests.support.api_fixtures import ApiServer
+from tests.support.process_harness import (
+    Proc,
+    gateway_config,
+    gateway_node,
+    scenario_node,
+    start_gateway,
+    start_mock_nodes,
+    wait_for_links,
+)
 from uplink.contract import INGEST_PATH, IngestBatch
 
 SINKS = ["webhook-central"]
@@ -56,3 +66,38 @@ def serve_centre(db_url: str, **settings: object) -> Iterator[Centre]:
         database.dispose()
 
 
+
+
+@dataclass
+class Edge:
+    """A real gateway process polling one mock node over a pty and replicating to a centre."""
+
+    gateway: Proc
+    database_path: Path
+
+
+@contextmanager
+def north_edge(centre: Centre, tmp_path: Path, *, gateway_id: str, node_id: str, seed: int,
+               **uplink: object) -> Iterator[Edge]:
+    """A gateway of site north (its gateway key) with one node polled every 0.3 s, replicating to
+    ``centre`` with short waits; ``uplink`` adds to or overrides its ``[uplink]`` settings."""
+    links = tmp_path / "links"
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario_node(node_id, seed))
+    mock = start_mock_nodes(scenario, links, tmp_path)
+    database_path = tmp_path / "gateway.db"
+    config = tmp_path / "gateway.toml"
+    config.write_text(gateway_config(
+        database_path, [gateway_node(node_id, links, interval_s=0.3)],
+        uplink={"url": centre.url, "key": centre.north, "gateway_id": gateway_id, "site": "north",
+                "idle_s": 0.2, "timeout_s": 10.0, "backoff_base_s": 0.2, "backoff_cap_s": 1.0, **uplink},
+    ))
+    gateway = None
+    try:
+        wait_for_links(links, [node_id], mock)
+        gateway = start_gateway(config, tmp_path)
+        yield Edge(gateway, database_path)
+    finally:
+        for proc in (gateway, mock):
+            if proc is not None:
+                proc.close()

@@ -7,6 +7,7 @@ why) — though the decommissioned node has no more cycles to carry it.
 """
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
@@ -18,20 +19,12 @@ from db.database import open_database
 from db.models import IngestedRecordRow, MeasurementKind, MeasurementRow, Role
 from service.settings import ApiSettings
 from tests.support.api_fixtures import ApiServer
-from tests.support.central_site import Centre, serve_centre
-from tests.support.process_harness import (
-    gateway_config,
-    gateway_node,
-    scenario_node,
-    start_gateway,
-    start_mock_nodes,
-    wait_for_links,
-    wait_until,
-)
+from tests.support.central_site import Centre, north_edge, serve_centre
+from tests.support.process_harness import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
 
-GATEWAY, SITE, NODE = "gw-n1", "north", "pipe-1"
+GATEWAY, NODE = "gw-n1", "pipe-1"
 STEP_TIMEOUT_S = 30.0
 
 
@@ -48,23 +41,10 @@ def central_id(centre: Centre, gateway_measurement_id: int) -> int | None:
 
 def test_a_baseline_set_and_a_decommissioning_at_the_gateways_api_reach_the_centre(tmp_path: Path, sqlite_url: str):
     with serve_centre(sqlite_url) as centre:
-        links = tmp_path / "links"
-        scenario = tmp_path / "scenario.toml"
-        scenario.write_text(scenario_node(NODE, 711))
-        mock = start_mock_nodes(scenario, links, tmp_path)
-        gateway_db = tmp_path / "gateway.db"
-        config = tmp_path / "gateway.toml"
-        config.write_text(gateway_config(
-            gateway_db, [gateway_node(NODE, links, interval_s=0.3)],
-            uplink={"url": centre.url, "key": centre.north, "gateway_id": GATEWAY, "site": SITE,
-                    "idle_s": 0.2, "timeout_s": 10.0, "backoff_base_s": 0.2, "backoff_cap_s": 1.0},
-        ))
-        gateway = edge = None
-        try:
-            wait_for_links(links, [NODE], mock)
-            gateway = start_gateway(config, tmp_path)
+        with north_edge(centre, tmp_path, gateway_id=GATEWAY, node_id=NODE, seed=711) as site, ExitStack() as stack:
             wait_until(lambda: centre_node(centre), STEP_TIMEOUT_S, 0.3, what="the node at the centre")
-            edge = open_database(f"sqlite:///{gateway_db}", upgrade=False)
+            edge = open_database(f"sqlite:///{site.database_path}", upgrade=False)
+            stack.callback(edge.dispose)
 
             def replicated_monitor() -> int | None:
                 with edge.session() as session:
@@ -79,7 +59,7 @@ def test_a_baseline_set_and_a_decommissioning_at_the_gateways_api_reach_the_cent
             with edge.write() as session:
                 admin = create_api_key(session, name="admin-eve", role=Role.ADMIN)[1]
 
-            with ApiServer(ApiSettings(database_url=f"sqlite:///{gateway_db}")) as gateway_api:
+            with ApiServer(ApiSettings(database_url=f"sqlite:///{site.database_path}")) as gateway_api:
                 headers = {"Authorization": f"Bearer {admin}"}
                 base = f"{gateway_api.base_url}/api/v1/nodes/{NODE}"
                 made = httpx.post(f"{base}/baselines", json={"measurement_id": chosen, "reason": "after the repair"},
@@ -104,9 +84,3 @@ def test_a_baseline_set_and_a_decommissioning_at_the_gateways_api_reach_the_cent
             assert [(b["reason"], b["active"]) for b in history] == [("after the repair", True),
                                                                      ("commissioning: first measurement", False)]
             assert NODE not in [n["node_id"] for n in centre.get("/nodes").json()]  # out of service there too
-        finally:
-            if edge is not None:
-                edge.dispose()
-            for proc in (gateway, mock):
-                if proc is not None:
-                    proc.close()

@@ -8,6 +8,7 @@ mock node over a pty, the gateway's real retention.
 """
 from __future__ import annotations
 
+from contextlib import ExitStack
 from datetime import timedelta
 from pathlib import Path
 
@@ -20,20 +21,12 @@ from db.database import open_database
 from db.models import MeasurementRow, Role
 from db.retention import prune_traces
 from tests.support.api_fixtures import assert_problem
-from tests.support.central_site import Centre, serve_centre
-from tests.support.process_harness import (
-    gateway_config,
-    gateway_node,
-    scenario_node,
-    start_gateway,
-    start_mock_nodes,
-    wait_for_links,
-    wait_until,
-)
+from tests.support.central_site import Centre, north_edge, serve_centre
+from tests.support.process_harness import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
 
-GATEWAY, SITE, NODE = "gw-n1", "north", "pipe-1"
+GATEWAY, NODE = "gw-n1", "pipe-1"
 STEP_TIMEOUT_S = 30.0
 
 
@@ -63,23 +56,8 @@ def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_
     with serve_centre(sqlite_url) as centre:
         with centre.database.write() as session:
             operator = create_api_key(session, name="operator-ana", role=Role.OPERATOR)[1]
-        links = tmp_path / "links"
-        scenario = tmp_path / "scenario.toml"
-        scenario.write_text(scenario_node(NODE, 710))
-        mock = start_mock_nodes(scenario, links, tmp_path)
-        gateway_db = tmp_path / "gateway.db"
-        config = tmp_path / "gateway.toml"
-        config.write_text(gateway_config(
-            gateway_db, [gateway_node(NODE, links, interval_s=0.3)],
-            uplink={"url": centre.url, "key": centre.north, "gateway_id": GATEWAY, "site": SITE,
-                    "send": "flagged_traces", "idle_s": 0.2, "requests_every_s": 0.3, "timeout_s": 10.0,
-                    "backoff_base_s": 0.2, "backoff_cap_s": 1.0},
-        ))
-        gateway = None
-        edge = None
-        try:
-            wait_for_links(links, [NODE], mock)
-            gateway = start_gateway(config, tmp_path)
+        with (north_edge(centre, tmp_path, gateway_id=GATEWAY, node_id=NODE, seed=710, send="flagged_traces",
+                        requests_every_s=0.3) as site, ExitStack() as stack):
             wanted, gone = wait_until(lambda: sent_without_traces(centre, 2), STEP_TIMEOUT_S, 0.3,
                                       what="two calm measurements at the centre without their traces")
             assert traces_of(centre, wanted)["status"] == "at_gateway"
@@ -93,7 +71,8 @@ def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_
             state = traces_of(centre, wanted)
             assert state["gateway_id"] == GATEWAY and state["answered_at"] and state["received_at"]
             local_id = int(state["measurement_uid"].rsplit("/", 1)[1])
-            edge = open_database(f"sqlite:///{gateway_db}", upgrade=False)
+            edge = open_database(f"sqlite:///{site.database_path}", upgrade=False)
+            stack.callback(edge.dispose)
             with edge.session() as session, centre.database.session() as central:
                 at_gateway = session.get(MeasurementRow, local_id, options=[undefer(MeasurementRow.traces_blob)])
                 here = central.get(MeasurementRow, wanted, options=[undefer(MeasurementRow.traces_blob)])
@@ -111,9 +90,3 @@ def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_
             body = assert_problem(ask(centre, operator, gone), 410, "traces-pruned")
             assert f"gateway '{GATEWAY}'" in body["detail"] and "no longer holds" in body["detail"]
             assert centre.get(f"/measurements/{gone}/traces").status_code == 410
-        finally:
-            if edge is not None:
-                edge.dispose()
-            for proc in (gateway, mock):
-                if proc is not None:
-                    proc.close()
