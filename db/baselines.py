@@ -47,12 +47,7 @@ def set_active_baseline(
     were pruned (a baseline must be re-imageable). The partial unique index
     ``uq_baselines_one_active_per_node`` backs this up inside the database.
     """
-    get_node(session, node_id)
-    measurement = get_measurement(session, measurement_id)
-    if measurement.node_id != node_id:
-        raise BaselineError(f"measurement {measurement_id} belongs to node {measurement.node_id!r}, not {node_id!r}")
-    if measurement.traces_pruned_at is not None:
-        raise BaselineError(f"measurement {measurement_id} has no traces any more (pruned); it cannot be a baseline")
+    _baseline_candidate(session, node_id, measurement_id)
     now = now or utc_now()
     deactivated = list(session.scalars(
         select(BaselineRow).where(BaselineRow.node_id == node_id, BaselineRow.active.is_(True)).order_by(BaselineRow.id)
@@ -85,12 +80,7 @@ def add_library_baseline(
     """An inactive baseline record: the measurement joins the node's temperature library (its kind
     becomes ``baseline``) while the active baseline stays. Raises :class:`BaselineError` as
     :func:`set_active_baseline` does."""
-    get_node(session, node_id)
-    measurement = get_measurement(session, measurement_id)
-    if measurement.node_id != node_id:
-        raise BaselineError(f"measurement {measurement.id} belongs to node {measurement.node_id!r}, not {node_id!r}")
-    if measurement.traces_pruned_at is not None:
-        raise BaselineError(f"measurement {measurement.id} has no traces any more (pruned); it cannot be a baseline")
+    measurement = _baseline_candidate(session, node_id, measurement_id)
     measurement.kind = MeasurementKind.BASELINE
     now = now or utc_now()
     row = BaselineRow(node_id=node_id, measurement_id=measurement.id, created_by=created_by, created_at=now,
@@ -99,6 +89,18 @@ def add_library_baseline(
     session.flush()
     enqueue_baselines(session, node_id, [row], now=now)
     return row
+
+
+def _baseline_candidate(session: Session, node_id: str, measurement_id: int) -> MeasurementRow:
+    """The measurement that is to become one of the node's baselines; :class:`BaselineError` if it belongs
+    to another node or its traces were pruned (a baseline must be re-imageable)."""
+    get_node(session, node_id)
+    measurement = get_measurement(session, measurement_id)
+    if measurement.node_id != node_id:
+        raise BaselineError(f"measurement {measurement_id} belongs to node {measurement.node_id!r}, not {node_id!r}")
+    if measurement.traces_pruned_at is not None:
+        raise BaselineError(f"measurement {measurement_id} has no traces any more (pruned); it cannot be a baseline")
+    return measurement
 
 
 def baseline_history(session: Session, node_id: str) -> Sequence[BaselineRow]:

@@ -51,10 +51,7 @@ def update_node_details(
         setattr(node, name, value)
     node.details_updated_at = now or utc_now()
     node.details_updated_by = who
-    node.revision += 1
-    session.flush()
-    enqueue_node_change(session, node_id, now=node.details_updated_at)
-    return node
+    return _admin_changed(session, node, now=node.details_updated_at)
 
 
 def decommission_node(
@@ -74,10 +71,7 @@ def decommission_node(
     node.decommissioned_by = who
     node.decommission_reason = reason
     node.online = False  # the gateway lets go of it
-    node.revision += 1
-    session.flush()
-    enqueue_node_change(session, node_id, now=node.decommissioned_at)
-    return node
+    return _admin_changed(session, node, now=node.decommissioned_at)
 
 
 def recommission_node(session: Session, node_id: str, *, now: datetime | None = None) -> NodeRow:
@@ -86,9 +80,14 @@ def recommission_node(session: Session, node_id: str, *, now: datetime | None = 
     if node.decommissioned_at is None:
         raise StateConflict(f"node {node_id!r} is in service")
     node.decommissioned_at = node.decommissioned_by = node.decommission_reason = None
+    return _admin_changed(session, node, now=now)
+
+
+def _admin_changed(session: Session, node: NodeRow, *, now: datetime | None) -> NodeRow:
+    """An admin changed what the node's record carries: a new revision, queued for the uplink."""
     node.revision += 1
     session.flush()
-    enqueue_node_change(session, node_id, now=now)
+    enqueue_node_change(session, node.node_id, now=now)
     return node
 
 
