@@ -121,13 +121,17 @@ class _Batch:
         prefix = f"{self.batch.gateway_id}/measurement/"
         if not uid.startswith(prefix):
             raise _Refused("forbidden", f"{uid!r} is not one of gateway {self.batch.gateway_id!r}'s measurements")
+        return int(self.central_id(uid, "measurement"))
+
+    def central_id(self, uid: str, kind: str) -> str:
+        """The id here of the record ``uid`` (a ``kind``) held already; refused if it is not."""
         central = self.central_ids.get(uid)
         if central is None:
             row = self.session.get(IngestedRecordRow, uid)
             if row is None:
-                raise _Refused("unknown-reference", f"measurement {uid!r} is not known here: send it first")
+                raise _Refused("unknown-reference", f"{kind} {uid!r} is not known here: send it first")
             central = self.central_ids[uid] = row.central_id
-        return int(central)
+        return central
 
     def remember(self, uid: str, kind: str, central_id: object) -> None:
         self.session.add(IngestedRecordRow(uid=uid, gateway_id=self.batch.gateway_id, kind=kind,
@@ -227,7 +231,7 @@ class _Batch:
     def baseline_again(self, record: BaselineRecord) -> Literal["accepted", "duplicate", "stale"]:
         """A baseline held already: deactivated if the gateway deactivated it since; nothing else changes."""
         self.own_node(record.node_id)
-        row = self.session.get(BaselineRow, int(self.central_id(record.uid)))
+        row = self.session.get(BaselineRow, int(self.central_id(record.uid, "baseline")))
         if row is None or row.node_id != record.node_id:
             raise _Refused("invalid", f"baseline {record.uid!r} is not node {record.node_id!r}'s here")
         stored = BaselineView(row.node_id, self.measurement_uid(row.measurement_id), row.created_by, row.created_at,
@@ -241,12 +245,6 @@ class _Batch:
         row.active, row.deactivated_at = False, record.deactivated_at
         self.session.flush()
         return "accepted"
-
-    def central_id(self, uid: str) -> str:
-        row = self.session.get(IngestedRecordRow, uid)
-        if row is None:  # the caller saw it held
-            raise _Refused("unknown-reference", f"{uid!r} is not known here")
-        return row.central_id
 
     def measurement_uid(self, measurement_id: int) -> str:
         """The edge's uid of a measurement held here."""
