@@ -40,7 +40,7 @@ from db.models import (
     Severity,
     StateChangeRow,
 )
-from db.trace_requests import mark_received
+from db.trace_requests import edge_record, mark_received
 from uplink.contract import (
     AlertEventRecord,
     BaselineRecord,
@@ -248,9 +248,8 @@ class _Batch:
 
     def measurement_uid(self, measurement_id: int) -> str:
         """The edge's uid of a measurement held here."""
-        uid = self.session.scalar(select(IngestedRecordRow.uid).where(
-            IngestedRecordRow.kind == "measurement", IngestedRecordRow.central_id == str(measurement_id)).limit(1))
-        return uid if uid is not None else f"(measurement {measurement_id} here)"
+        edge = edge_record(self.session, measurement_id)
+        return edge.uid if edge is not None else f"(measurement {measurement_id} here)"
 
     def detection(self, record: DetectionRecord) -> None:
         self.own_node(record.node_id)

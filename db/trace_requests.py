@@ -76,7 +76,8 @@ class TracesState:
     received_at: datetime | None = None
 
 
-def _edge_record(session: Session, measurement_id: int) -> IngestedRecordRow | None:
+def edge_record(session: Session, measurement_id: int) -> IngestedRecordRow | None:
+    """The ingest record of a measurement held here (its gateway and edge uid); None: this site's own."""
     return session.scalars(
         select(IngestedRecordRow)
         .where(IngestedRecordRow.kind == "measurement", IngestedRecordRow.central_id == str(measurement_id))
@@ -100,7 +101,7 @@ def _state(measurement: MeasurementRow, edge: IngestedRecordRow | None, request:
 
 
 def traces_state(session: Session, measurement: MeasurementRow) -> TracesState:
-    return _state(measurement, _edge_record(session, measurement.id), _request(session, measurement.id))
+    return _state(measurement, edge_record(session, measurement.id), _request(session, measurement.id))
 
 
 def request_traces_of(
@@ -108,7 +109,7 @@ def request_traces_of(
 ) -> tuple[RequestOutcome, TracesState]:
     """Ask the measurement's gateway for its traces (call inside ``Database.write()``); the outcome
     and the traces' state after it. Only ``asked`` writes: a request pending already is left as it is."""
-    edge = _edge_record(session, measurement.id)
+    edge = edge_record(session, measurement.id)
     request = _request(session, measurement.id)
     outcome = request_outcome(_state(measurement, edge, request).status)
     if outcome != "asked":
