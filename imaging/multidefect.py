@@ -179,15 +179,15 @@ class _Search:
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
 
-    def beats_patterns(self, found: list[Found], item: Found) -> bool:
-        """Does adding a scatterer at ``item`` (the map's model) explain more of the record than
-        letting the ``found`` defects' echoes follow a directional pattern instead (each path's
-        amplitude a circular harmonic of the receiver's bearing up to PATTERN_ORDERS)? The
-        candidate has the fewer unknowns (2 per path, against 4 per path and found defect), so a
-        tie goes to the pattern."""
-        with_item = float(np.sum((self.original - sum(self.fits(found + [item])))**2))
+    def beats_patterns(self, found: list[Found], with_item: list[np.ndarray]) -> bool:
+        """Does adding a scatterer at a candidate (the map's model; ``with_item``: the fits of
+        ``found`` and the candidate) explain more of the record than letting the ``found``
+        defects' echoes follow a directional pattern instead (each path's amplitude a circular
+        harmonic of the receiver's bearing up to PATTERN_ORDERS)? The candidate has the fewer
+        unknowns (2 per path, against 4 per path and found defect), so a tie goes to the pattern."""
+        explained = float(np.sum((self.original - sum(with_item))**2))
         patterned = float(np.sum((self.original - sum(self.fits(found, orders=PATTERN_ORDERS)))**2))
-        return with_item < patterned
+        return explained < patterned
 
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
         runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)
@@ -219,6 +219,7 @@ def find_defects(
     first: DIMap | None = None
     first_peak: Estimate | None = None
     found: list[Found] = []
+    fits: list[np.ndarray] = []  # the found defects' echoes, fitted jointly
 
     def away_from(priors: list[Found]) -> Allowed:
         def allowed(g: Grid) -> np.ndarray:
@@ -251,15 +252,17 @@ def find_defects(
         item = search.found(values, di_map, estimate)
         if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
-        if found and not search.beats_patterns(found, item):
+        with_item = search.fits(found + [item])
+        if found and not search.beats_patterns(found, with_item):
             rejected.append(item)  # what the found defects' directional fields leave: look further
             continue
         found.append(item)
-        residual = search.original - sum(search.fits(found))
+        fits = with_item
+        residual = search.original - sum(fits)
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
     if len(found) > 1:
-        found = _refine(search, found, search.fits(found))
+        found = _refine(search, found, fits)
     return first, found, first_peak
 
 
