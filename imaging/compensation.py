@@ -18,11 +18,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import fft as sp_fft
-from scipy import ndimage
 
 from imaging.arrivals import hann_burst
 from imaging.dimap import BaselineMismatch, check_compatible
 from imaging.measurement import Measurement
+from imaging.resample import Resampler
 
 DEFAULT_MAX_STRETCH = 0.005  # +-0.5 %: about +-50 degC of velocity change in steel
 DEFAULT_MAX_RESIDUAL = 0.05  # relative residual energy above which no baseline is trusted
@@ -78,53 +78,6 @@ class NoValidBaseline:
 
 def _sample_times_s(m: Measurement) -> np.ndarray:
     return m.t0_s + np.arange(m.n_samples) / m.fs_hz
-
-
-class Resampler:
-    """Cubic B-spline interpolation of traces [n_rx, n] on their uniform time grid, at any times.
-
-    The interpolating spline's coefficients come from one recursive prefilter per row
-    (scipy.ndimage.spline_filter1d, mirror boundaries); a value is 4 coefficients times the
-    cubic B-spline's weights, for all rows at once. At >= 100 samples per period (85 kHz at
-    10 MHz) it matches a not-a-knot cubic spline to ~1e-7 of the signal except within a few
-    samples of the record's ends (tested).
-    """
-
-    def __init__(self, m: Measurement, rows: np.ndarray | None = None) -> None:
-        traces = m.traces if rows is None else m.traces[rows]
-        coef = ndimage.spline_filter1d(traces.astype(np.float64), order=3, axis=1, mode="mirror")
-        n = coef.shape[1]
-        # Time-major (a value gathers 4 rows of n_rx), mirror-extended one coefficient before and
-        # two after: indices -1, n, n+1 are 1, n-2, n-3.
-        ext = np.concatenate([coef[:, 1:2], coef, coef[:, n - 2:n - 1], coef[:, max(n - 3, 0):max(n - 3, 0) + 1]],
-                             axis=1)
-        self._coef = np.ascontiguousarray(ext.T)
-        self.t0_s, self.fs_hz, self.n = m.t0_s, m.fs_hz, n
-
-    def __call__(self, times_s: np.ndarray) -> np.ndarray:
-        """Values [n_rows, *times_s.shape]; zero outside the recorded interval (no extrapolation)."""
-        times_s = np.asarray(times_s, dtype=np.float64)
-        x = ((times_s - self.t0_s) * self.fs_hz).ravel()
-        outside = (x < 0) | (x > self.n - 1)
-        x = np.clip(x, 0.0, self.n - 1)
-        i = np.minimum(np.floor(x), max(self.n - 2, 0)).astype(np.intp)
-        f = x - i
-        g = 1.0 - f
-        f3 = f * f * f
-        w0 = g * g * g / 6.0
-        w3 = f3 / 6.0
-        w1 = 2.0 / 3.0 - f * f + 0.5 * f3
-        w2 = 1.0 - w0 - w1 - w3
-        c = self._coef
-        # Two reused buffers (no temporary per term: these arrays are large).
-        out = np.take(c, i, axis=0)
-        out *= np.where(outside, 0.0, w0)[:, None]
-        term = np.empty_like(out)
-        for shift, weight in ((1, w1), (2, w2), (3, w3)):
-            np.take(c, i + shift, axis=0, out=term)
-            term *= np.where(outside, 0.0, weight)[:, None]
-            out += term
-        return np.moveaxis(out.reshape(times_s.shape + (c.shape[1],)), -1, 0)
 
 
 def _evaluate(resampler: Resampler, times_s: np.ndarray, stretch: float | np.ndarray) -> np.ndarray:
@@ -217,7 +170,10 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     # Judged in the excitation's band: resampling at any fractional shift smooths the baseline's
     # noise above the band, which "explains" residual energy a stretch never did (white noise up
     # to Nyquist, no end echoes: a spurious 1e-4 accepted on most unchanged records).
-    plain_band, stretched_band = _in_band_energy(np.stack([target - plain[rows], target - moved[rows]]), current)
+    differences = np.empty((2,) + target.shape)
+    np.subtract(target, plain[rows], out=differences[0])
+    np.subtract(target, moved[rows], out=differences[1])
+    plain_band, stretched_band = _in_band_energy(differences, current)
     if not stretched_band <= (1.0 - MIN_EXPLAINED) * plain_band:
         return 0.0, plain_residual, baseline.traces
     return best, stretched_residual, moved.astype(np.float32)

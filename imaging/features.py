@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-from imaging.arrivals import analytic_signal, burst_autocorrelation_peak, hann_burst, matched_envelope, matched_filter
+from imaging.arrivals import analytic_matched, burst_autocorrelation_peak, hann_burst, matched_envelope
 from imaging.dimap import windowed_energy
 from imaging.scene import Scene
 
@@ -59,7 +59,7 @@ def residual_feature(residual: np.ndarray, scene: Scene, *, floor: bool = True) 
     elif feature == "analytic":
         scale = burst_autocorrelation_peak(fs_hz, excitation_hz, cycles) * scene.reference_amplitude_v
         burst = hann_burst(fs_hz, excitation_hz, cycles)
-        return analytic_signal(matched_filter(residual, burst), axis=-1) / scale
+        return analytic_matched(residual, burst) / scale
     elif feature == "squared":
         burst = hann_burst(fs_hz, excitation_hz, cycles)
         w = int(scene.window_samples or burst.size)

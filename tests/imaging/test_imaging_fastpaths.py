@@ -9,7 +9,7 @@ from test_imaging_multipath import random_problem
 
 import imaging.multipath as multipath
 from imaging import gather
-from imaging.arrivals import analytic_signal, reference_amplitude
+from imaging.arrivals import analytic_matched, analytic_signal, hann_burst, matched_filter, reference_amplitude
 from imaging.compensation import Resampler
 from imaging.echofit import fit_echoes, fit_smooth_echoes, literal_fit_echoes, literal_fit_smooth_echoes
 from imaging.grid import Grid
@@ -150,3 +150,31 @@ def test_coarse_to_fine_search_finds_the_peak_of_the_full_fine_map():
 def test_analytic_signal_equals_scipy_hilbert(seed, n, rows):
     x = np.random.default_rng(seed).standard_normal((rows, n))
     np.testing.assert_allclose(analytic_signal(x), sp_signal.hilbert(x), rtol=0, atol=1e-12 * max(1.0, np.abs(x).max()))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(-5e-3, 5e-3), st.integers(2, 400))
+def test_compiled_resampler_equals_its_numpy_fallback(seed, stretch, n):
+    rng = np.random.default_rng(seed)
+    m = measurement(rng.standard_normal((3, n)).astype(np.float32), np.array([0.0, 120.0, 240.0]))
+    # Inside, on both ends, and outside the record.
+    at = np.concatenate([np.arange(-2, n + 2) / 10e6 / (1 + stretch), rng.uniform(-1e-6, (n + 1) / 10e6, 50)])
+    resampler = Resampler(m)
+    np.testing.assert_allclose(resampler(at), resampler(at, compiled=False), rtol=0,
+                               atol=1e-12 * float(np.abs(m.traces).max()))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2400, 6000))
+def test_one_pass_analytic_correlation_equals_hilbert_of_the_correlation_away_from_the_ends(seed, n):
+    rng = np.random.default_rng(seed)
+    burst = hann_burst(10e6, 85e3, 5)
+    # A record like ours: bursts at 85 kHz in noise, zero-mean.
+    x = rng.standard_normal((2, n)) * 0.01
+    for k in rng.integers(burst.size, n - 2 * burst.size, 3):
+        x[:, k:k + burst.size] += rng.uniform(0.2, 1.0) * burst
+    two_pass = analytic_signal(matched_filter(x, burst))
+    one_pass = analytic_matched(x, burst)
+    inner = slice(burst.size, n - burst.size)
+    np.testing.assert_allclose(one_pass[:, inner], two_pass[:, inner], rtol=0, atol=2e-3 * np.abs(two_pass).max())
+    np.testing.assert_allclose(one_pass.real, two_pass.real, rtol=0, atol=1e-9 * np.abs(two_pass).max())
