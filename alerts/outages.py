@@ -4,7 +4,8 @@ Everything is read from the database (``nodes.last_seen_at``, or ``nodes.watched
 node that never answered, and the outage events already in the outbox), so the check is
 idempotent and survives restarts: an outage keeps its one event id however often it is checked.
 Right after the gateway starts, nodes are given ``offline_after_s`` to answer before the
-downtime of the gateway itself counts against them.
+downtime of the gateway itself counts against them; so is a node an admin has just recommissioned
+(``nodes.watched_since``), which may have been silent since long before.
 """
 from __future__ import annotations
 
@@ -36,7 +37,9 @@ def check_outages(
         open_outage = latest if latest is not None and latest.kind == EventKind.NODE_OFFLINE else None
         if open_outage is None:
             silent_since = silent_since_of(node.last_seen_at, node.watched_since)
-            if not offline_due(silent_since, watching_since, now=now, offline_after_s=settings.offline_after_s):
+            # Counted from the gateway's start, or from the node's recommissioning, at the earliest.
+            watched = max(watching_since, node.watched_since)
+            if not offline_due(silent_since, watched, now=now, offline_after_s=settings.offline_after_s):
                 continue
             event = node_offline_event(
                 settings, node_id=node.node_id, state=node.state.value, last_seen_at=silent_since, now=now,

@@ -75,12 +75,17 @@ def decommission_node(
 
 
 def recommission_node(session: Session, node_id: str, *, now: datetime | None = None) -> NodeRow:
-    """Put a decommissioned node back in service; raises :class:`StateConflict` if it is in service."""
+    """Put a decommissioned node back in service; raises :class:`StateConflict` if it is in service.
+
+    The gateway watches it again from now (``watched_since``): a node silent since before its
+    decommissioning gets ``offline_after_s`` to answer before it is reported offline, like a node
+    at the gateway's start (alerts/outages.py)."""
     node = get_node(session, node_id)
     if node.decommissioned_at is None:
         raise StateConflict(f"node {node_id!r} is in service")
     node.decommissioned_at = node.decommissioned_by = node.decommission_reason = None
-    return _admin_changed(session, node, now=now)
+    node.watched_since = now or utc_now()
+    return _admin_changed(session, node, now=node.watched_since)
 
 
 def _admin_changed(session: Session, node: NodeRow, *, now: datetime | None) -> NodeRow:

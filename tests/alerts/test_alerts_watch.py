@@ -51,9 +51,32 @@ def test_a_decommissioned_node_is_not_reported_offline_until_it_is_back_in_servi
     assert check(outbox_db, T0 + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE] * 2  # node-a, node-b
     with outbox_db.session() as session:
         assert {e.node_id for e in events_of_kind(session, EventKind.NODE_OFFLINE)} == {"node-a", "node-b"}
+    back = T0 + timedelta(hours=3)  # recommissioned, silent since T0: given offline_after_s to answer
     with outbox_db.write() as session:
-        recommission_node(session, "node-c")
-    assert check(outbox_db, T0 + timedelta(minutes=12)) == [EventKind.NODE_OFFLINE]  # silent since T0
+        recommission_node(session, "node-c", now=back)
+    assert check(outbox_db, back + timedelta(minutes=9)) == []
+    assert check(outbox_db, back + timedelta(minutes=11)) == [EventKind.NODE_OFFLINE]
+    with outbox_db.session() as session:
+        offline, = [e for e in events_of_kind(session, EventKind.NODE_OFFLINE) if e.node_id == "node-c"]
+    assert offline.payload["last_seen_at"] == T0.isoformat()  # the silence it reports is the real one
+    assert offline.payload["offline_for_s"] == (back + timedelta(minutes=11) - T0).total_seconds()
+
+
+def test_a_recommissioned_node_that_answers_within_offline_after_s_raises_no_alarm(outbox_db):
+    from db.nodes import decommission_node, recommission_node
+
+    with outbox_db.write() as session:
+        decommission_node(session, "node-c", who="admin:ops", reason="cable repair", now=T0)
+    back = T0 + timedelta(days=30)
+    with outbox_db.write() as session:
+        recommission_node(session, "node-c", now=back)
+    # node-a and node-b, silent since T0 and watched all along, are offline; node-c not yet.
+    assert check(outbox_db, back + timedelta(minutes=1)) == [EventKind.NODE_OFFLINE] * 2
+    with outbox_db.write() as session:
+        record_node_health(session, "node-c", online=True, seen_at=back + timedelta(minutes=5))
+    assert check(outbox_db, back + timedelta(minutes=11)) == []  # it answered in time
+    with outbox_db.session() as session:
+        assert {e.node_id for e in events_of_kind(session, EventKind.NODE_OFFLINE)} == {"node-a", "node-b"}
 
 
 def test_a_configured_node_that_never_answers_is_reported_offline_as_never_seen_and_online_at_its_first_answer(
@@ -131,7 +154,7 @@ def test_a_node_whose_offline_alarm_ended_with_its_decommissioning_is_reported_a
         for end in decommissioning_events(SETTINGS, open_alarms(session, "node-c"), node_id="node-c", state="ok",
                                           decommissioned_at=T0 + timedelta(minutes=20), by="admin:ops", reason="moved"):
             add_event_once(session, end, node_id="node-c", now=T0 + timedelta(minutes=20))
-        recommission_node(session, "node-c")
+        recommission_node(session, "node-c", now=T0 + timedelta(minutes=20))
     (again,) = check(outbox_db, T0 + timedelta(minutes=40))
     assert again == EventKind.NODE_OFFLINE  # a new alarm, not refused as the old one's id
     with outbox_db.session() as session:
