@@ -155,6 +155,8 @@ class _Batch:
             return "stale"
         if all(getattr(node, name) == value for name, value in values.items()):
             return "duplicate"
+        if node.decommissioned_at is not None and record.decommissioned_at is None:
+            node.watched_since = self.now  # recommissioned: watched again from now, as at its gateway (db/nodes.py)
         for name, value in values.items():
             setattr(node, name, value)
         return "accepted"

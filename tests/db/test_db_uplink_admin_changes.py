@@ -142,3 +142,24 @@ def test_a_node_changed_while_its_record_was_on_the_way_is_queued_again(gateway_
         rows = next_batch(session, limit=10)
         mark_sent(session, [row.id for row in rows], node_revisions={"node-a": sent_revision + 1})
     assert pending(gateway) == []
+
+
+def test_a_recommissioning_that_reaches_the_centre_restarts_the_centres_watch_of_the_node(sqlite_db):
+    from datetime import timedelta
+
+    from db.ingest import ingest_batch
+    from tests.support.ingest_batches import batch_of, node_record
+
+    out = dict(decommissioned_at=T0 + timedelta(hours=1), decommissioned_by="alice", decommission_reason="repair")
+
+    def arrives(record, at):
+        with sqlite_db.write() as session:
+            ingest_batch(session, batch_of("gw-n1", "north", [record]), key_site="north", now=at)
+        with sqlite_db.session() as session:
+            return session.get(NodeRow, "node-a").watched_since
+
+    assert arrives(node_record("gw-n1", "node-a", revision=1), T0) == T0  # its first answer
+    assert arrives(node_record("gw-n1", "node-a", revision=2, **out), T0 + timedelta(hours=1)) == T0
+    back = T0 + timedelta(days=3)
+    assert arrives(node_record("gw-n1", "node-a", revision=3), back) == back  # watched again from its return
+    assert arrives(node_record("gw-n1", "node-a", revision=4, label="Line 3"), back + timedelta(hours=1)) == back
