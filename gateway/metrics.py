@@ -152,6 +152,15 @@ class GatewayCollector(Collector):
         )
         for name, doc, value in counters:
             yield CounterMetricFamily(f"pipesentry_gateway_uplink_{name}", doc, value=value)
+        answered = CounterMetricFamily("pipesentry_gateway_uplink_trace_requests",
+                                       "the centre's requests for traces answered, by answer (held: queued with "
+                                       "them; pruned: retention removed them)", labels=["answer"])
+        for answer, count in sorted(stats.trace_answers.items()):
+            answered.add_metric([answer], count)
+        yield answered
+        yield CounterMetricFamily("pipesentry_gateway_uplink_trace_request_failures",
+                                  "polls for the centre's trace requests, or deliveries of the answers, that failed "
+                                  "(asked again after requests_every_s)", value=stats.requests_failures)
         if stats.last_stored_at is not None:
             yield GaugeMetricFamily("pipesentry_gateway_uplink_last_stored_timestamp_seconds",
                                     "when the centre last stored a batch", value=stats.last_stored_at.timestamp())

@@ -29,7 +29,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Protocol
 
@@ -76,6 +76,8 @@ class UplinkStats:
     last_stored_at: datetime | None = None
     last_error: str | None = None
     trace_requests: int = 0  # the centre's trace requests answered (held or pruned)
+    trace_answers: dict[str, int] = field(default_factory=lambda: {"held": 0, "pruned": 0})  # ... by answer
+    requests_failures: int = 0  # polls for trace requests, or deliveries of their answers, that failed
     last_requests_error: str | None = None  # why the last poll for trace requests failed (None: it did not)
 
 
@@ -200,12 +202,15 @@ class UplinkSender:
         if response.status_code != 200:
             return self._requests_failed(f"answers not taken: HTTP {response.status_code} {response.text[:200]}")
         self.stats.trace_requests += len(answers)
+        for given in answers:
+            self.stats.trace_answers[given.answer] = self.stats.trace_answers.get(given.answer, 0) + 1
         self.stats.last_requests_error = None
         for given in answers:
             log.info("uplink: the centre asked for the traces of %s: %s", given.measurement_uid, given.answer)
         return len(answers)
 
     def _requests_failed(self, why: str) -> int:
+        self.stats.requests_failures += 1
         self.stats.last_requests_error = why
         log.warning("uplink: trace requests not handled, asking again in %.0f s: %s",
                     self.settings.requests_every_s, why)

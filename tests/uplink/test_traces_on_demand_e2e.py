@@ -14,6 +14,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.orm import undefer
 
 from db.api_keys import create_api_key
@@ -22,7 +23,7 @@ from db.models import MeasurementRow, Role
 from db.retention import prune_traces
 from tests.support.api_fixtures import assert_problem
 from tests.support.central_site import Centre, north_edge, serve_centre
-from tests.support.process_harness import wait_until
+from tests.support.process_harness import gateway_metrics_port, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
 
@@ -43,6 +44,15 @@ def sent_without_traces(centre: Centre, count: int) -> list[int] | None:
         return None
     ids = [m["id"] for m in page.json()["items"] if not m["traces_available"]]
     return ids[:count] if len(ids) >= count else None
+
+
+def sample(metrics: str, name: str, **labels: str) -> float:
+    """The value of one series of a Prometheus text exposition."""
+    for family in text_string_to_metric_families(metrics):
+        for series in family.samples:
+            if series.name == name and series.labels == labels:
+                return float(series.value)
+    raise AssertionError(f"{name}{labels or ''} is not in the gateway's metrics")
 
 
 def ask(centre: Centre, key: str, measurement_id: int) -> httpx.Response:
@@ -90,3 +100,8 @@ def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_
             body = assert_problem(ask(centre, operator, gone), 410, "traces-pruned")
             assert f"gateway '{GATEWAY}'" in body["detail"] and "no longer holds" in body["detail"]
             assert centre.get(f"/measurements/{gone}/traces").status_code == 410
+            metrics = httpx.get(f"http://127.0.0.1:{gateway_metrics_port(site.gateway)}/metrics", timeout=5.0).text
+            answered = {answer: sample(metrics, "pipesentry_gateway_uplink_trace_requests_total", answer=answer)
+                        for answer in ("held", "pruned")}
+            assert answered == {"held": 1.0, "pruned": 1.0}
+            assert sample(metrics, "pipesentry_gateway_uplink_trace_request_failures_total") == 0.0
