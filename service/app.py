@@ -14,6 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service import problems
 from service.database import DatabaseGate
 from service.deps import VerifiedKeys
+from service.head import HeadAsGet
 from service.ingest import IngestGate
 from service.limits import BodySizeLimit, RequestsInFlightLimit
 from service.maps import HeatmapRenderer
@@ -107,6 +108,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
             allow_headers=["Authorization", "X-API-Key", "Content-Type"],
             max_age=600,
         )
+    app.add_middleware(HeadAsGet)
     app.add_middleware(SecurityHeaders, api_prefix=settings.base_path)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
                        larger={f"{settings.base_path}/ingest/batches": settings.ingest_max_body_bytes})
