@@ -20,8 +20,12 @@ path's amplitude a first-order circular harmonic of the receiver's bearing, PATT
 is only the alternative hypothesis, never what is subtracted: removing the found defects' echoes
 with it (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
 second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
-were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A last pass re-locates each
-defect (within REFINE_RADIUS_MM) with the others' echoes removed.
+were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on
+either end of the imaged span (within EDGE_MM of the Tx or Rx ring) is not a located scatterer —
+the map would still rise beyond the span; it is what changes at a ring (its transducers, what
+leaks or converts there, the direct wave's shadow of a found defect) — so it is not reported, but
+its echoes are fitted and removed with the defects' (they would bias them). A last pass re-locates
+each defect (within REFINE_RADIUS_MM) with the others' echoes, those maxima's included, removed.
 """
 from __future__ import annotations
 
@@ -52,6 +56,7 @@ COARSE_MARGIN = 0.5  # a later coarse peak below this fraction of the bar is not
 #                     far less than half their height within half a coarse step)
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
+EDGE_MM = 2.0  # a later peak this close to an end of the imaged span is a boundary maximum, not a located one
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
 
@@ -231,12 +236,14 @@ def find_defects(
         return allowed
 
     rejected: list[Found] = []
+    at_rings: list[Found] = []  # boundary maxima: fitted and removed with the defects, never reported
+    fitted: list[Found] = []  # found and at_rings in the order their echoes are fitted (``fits``)
     for _ in range(2 * max_defects - 1):  # each pass reports a defect or rules a peak out
         if len(found) >= max_defects:
             break
         values, di_map = search.image(residual)
         first = first or di_map
-        allowed = away_from(list(found) + rejected)
+        allowed = away_from(fitted + rejected)
         candidates = np.where(allowed(grid), di_map.pixels, -np.inf)
         if not np.isfinite(candidates).any():
             break
@@ -249,25 +256,47 @@ def find_defects(
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
+        if found and _on_the_span_edge(grid, estimate):
+            # A maximum on the Tx or Rx ring is not located (the map would still rise beyond the
+            # imaged span): a change at a ring (its transducers, what leaks or converts there, the
+            # direct wave's shadow), not a defect between them. Its echoes are fitted with the
+            # defects' so that they stop biasing them, but it is not reported.
+            item = Found(estimate, di_map, severity_at(values, search.scene, estimate))
+            at_rings.append(item)
+            fitted.append(item)
+            fits = search.fits(fitted)
+            residual = search.original - sum(fits)
+            continue
         item = search.found(values, di_map, estimate)
         if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
-        with_item = search.fits(found + [item])
-        if found and not search.beats_patterns(found, with_item):
+        with_item = search.fits(fitted + [item])
+        if found and not search.beats_patterns(fitted, with_item):
             rejected.append(item)  # what the found defects' directional fields leave: look further
             continue
         found.append(item)
+        fitted.append(item)
         fits = with_item
         residual = search.original - sum(fits)
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
-    if len(found) > 1:
-        found = _refine(search, found, fits)
+    if len(fitted) > 1 and found:
+        ring_ids = {id(f) for f in at_rings}
+        found = _refine(search, fitted, fits, [id(f) not in ring_ids for f in fitted])
     return first, found, first_peak
 
 
-def _refine(search: _Search, found: list[Found], fits: list[np.ndarray]) -> list[Found]:
+def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
+    """Does the peak sit on either end of the imaged axial span (the Tx or the Rx ring), within a fine step?"""
+    lo = float(grid.axial_mm[0])
+    hi = float(grid.axial_mm[-1])
+    return estimate.axial_mm <= lo + EDGE_MM or estimate.axial_mm >= hi - EDGE_MM
+
+
+def _refine(search: _Search, found: list[Found], fits: list[np.ndarray], report: list[bool]) -> list[Found]:
     """One pass: re-locate each defect on the residual with every *other* defect's echoes removed.
+    ``found`` and ``fits`` in the same order; only the items ``report`` marks are re-located and
+    returned (strongest first), the others' echoes (maxima at a ring) are only removed.
 
     The search places each defect while the later ones are still in the residual, which biases
     the earlier peaks where their echoes overlap; re-imaging each with the others' (jointly
@@ -277,6 +306,8 @@ def _refine(search: _Search, found: list[Found], fits: list[np.ndarray]) -> list
     refined = []
     circumference_mm = search.scene.circumference_mm
     for i, item in enumerate(found):
+        if not report[i]:
+            continue
         others = sum((f for j, f in enumerate(fits) if j != i), np.zeros_like(search.original))
         values, di_map = search.image(search.original - others)
 
