@@ -287,7 +287,7 @@ def find_defects(
 
 
 def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
-    """Does the peak sit on either end of the imaged axial span (the Tx or the Rx ring), within a fine step?"""
+    """Does the peak sit on either end of the imaged axial span (the Tx or the Rx ring), within EDGE_MM?"""
     lo = float(grid.axial_mm[0])
     hi = float(grid.axial_mm[-1])
     return estimate.axial_mm <= lo + EDGE_MM or estimate.axial_mm >= hi - EDGE_MM
