@@ -75,8 +75,8 @@ class UplinkStats:
     consecutive_failures: int = 0
     last_stored_at: datetime | None = None
     last_error: str | None = None
-    trace_requests: int = 0  # the centre's trace requests answered (held or pruned)
-    trace_answers: dict[str, int] = field(default_factory=lambda: {"held": 0, "pruned": 0})  # ... by answer
+    # The centre's trace requests answered, by answer (held or pruned).
+    trace_answers: dict[str, int] = field(default_factory=lambda: {"held": 0, "pruned": 0})
     requests_failures: int = 0  # polls for trace requests, or deliveries of their answers, that failed
     last_requests_error: str | None = None  # why the last poll for trace requests failed (None: it did not)
 
@@ -201,11 +201,9 @@ class UplinkSender:
             return self._requests_failed(f"answers not delivered: {type(exc).__name__}: {exc}")
         if response.status_code != 200:
             return self._requests_failed(f"answers not taken: HTTP {response.status_code} {response.text[:200]}")
-        self.stats.trace_requests += len(answers)
-        for given in answers:
-            self.stats.trace_answers[given.answer] = self.stats.trace_answers.get(given.answer, 0) + 1
         self.stats.last_requests_error = None
         for given in answers:
+            self.stats.trace_answers[given.answer] = self.stats.trace_answers.get(given.answer, 0) + 1
             log.info("uplink: the centre asked for the traces of %s: %s", given.measurement_uid, given.answer)
         return len(answers)
 
