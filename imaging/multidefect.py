@@ -236,8 +236,8 @@ def find_defects(
         return allowed
 
     rejected: list[Found] = []
-    at_rings: list[Found] = []  # boundary maxima: fitted and removed with the defects, never reported
-    fitted: list[Found] = []  # found and at_rings in the order their echoes are fitted (``fits``)
+    fitted: list[Found] = []  # found defects and maxima on a ring, in the order of their echoes in ``fits``
+    reported: list[bool] = []  # per ``fitted``: a found defect (True) or a maximum on a ring, never reported
     for _ in range(2 * max_defects - 1):  # each pass reports a defect or rules a peak out
         if len(found) >= max_defects:
             break
@@ -261,9 +261,8 @@ def find_defects(
             # imaged span): a change at a ring (its transducers, what leaks or converts there, the
             # direct wave's shadow), not a defect between them. Its echoes are fitted with the
             # defects' so that they stop biasing them, but it is not reported.
-            item = Found(estimate, di_map, severity_at(values, search.scene, estimate))
-            at_rings.append(item)
-            fitted.append(item)
+            fitted.append(Found(estimate, di_map, severity_at(values, search.scene, estimate)))
+            reported.append(False)
             fits = search.fits(fitted)
             residual = search.original - sum(fits)
             continue
@@ -276,13 +275,13 @@ def find_defects(
             continue
         found.append(item)
         fitted.append(item)
+        reported.append(True)
         fits = with_item
         residual = search.original - sum(fits)
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
     if len(fitted) > 1 and found:
-        ring_ids = {id(f) for f in at_rings}
-        found = _refine(search, fitted, fits, [id(f) not in ring_ids for f in fitted])
+        found = _refine(search, fitted, fits, reported)
     return first, found, first_peak
 
 
