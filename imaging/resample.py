@@ -20,7 +20,8 @@ from imaging.measurement import Measurement
 
 
 def _weights(f: np.ndarray | float) -> tuple:
-    """The cubic B-spline's four weights at fractional offset ``f`` (w2 closes the partition of unity)."""
+    """The cubic B-spline's four weights at fractional offset ``f`` (w2 closes the partition of unity);
+    arrays in numpy, one point at a time in the compiled kernel."""
     g = 1.0 - f
     f3 = f * f * f
     w0 = g * g * g / 6.0
@@ -57,13 +58,7 @@ def _values_loops(coef, x, n, out):  # pragma: no cover - compiled by numba
                 out[p, r] = 0.0
             continue
         i = min(math.floor(xv), top)
-        f = xv - i
-        g = 1.0 - f
-        f3 = f * f * f
-        w0 = g * g * g / 6.0
-        w3 = f3 / 6.0
-        w1 = 2.0 / 3.0 - f * f + 0.5 * f3
-        w2 = 1.0 - w0 - w1 - w3
+        w0, w1, w2, w3 = _weights(xv - i)
         for r in range(coef.shape[1]):
             out[p, r] = ((coef[i, r] * w0 + coef[i + 1, r] * w1) + coef[i + 2, r] * w2) + coef[i + 3, r] * w3
 
@@ -72,6 +67,9 @@ def _compile():
     numba = numba_module()
     if numba is None:
         return None
+    from numba.extending import register_jitable
+
+    register_jitable(_weights)  # the kernel calls the same weights, compiled (the function stays as it is)
     t = numba.types
     signature = t.void(t.Array(t.float64, 2, "C", readonly=True), t.Array(t.float64, 1, "C", readonly=True), t.int64,
                        t.float64[:, ::1])
