@@ -96,6 +96,7 @@ class TraceRequestStatus(StrEnum):
     HELD = "held"  # the gateway holds the traces and has queued them for upload
     RECEIVED = "received"  # the traces arrived and were added to the measurement
     PRUNED = "pruned"  # the gateway answered that it no longer holds them
+    REFUSED = "refused"  # the gateway re-sent the measurement and this site refused the record (revision 0012)
 
 
 class Role(StrEnum):
@@ -434,7 +435,8 @@ class UplinkRow(Base):
 class TraceRequestRow(Base):
     """A central operator's request for the raw traces of a measurement a gateway sent without them
     (revision 0009): one per measurement, asked again on the same row. The gateway polls for the
-    ``requested`` ones of its site and answers ``held`` or ``pruned``; ingest marks it ``received``."""
+    ``requested`` ones of its site and answers ``held`` or ``pruned``; ingest marks it ``received``, or
+    ``refused`` (with why, revision 0012) when it refuses the record the gateway re-sent."""
 
     __tablename__ = "trace_requests"
     __table_args__ = (Index("ix_trace_requests_pending", "site", "gateway_id", "status", "id"),)
@@ -449,6 +451,8 @@ class TraceRequestRow(Base):
     requested_at: Mapped[datetime]
     answered_at: Mapped[datetime | None]  # when the gateway answered held or pruned
     received_at: Mapped[datetime | None]
+    refused_at: Mapped[datetime | None]  # when this site last refused the re-sent record (status refused)
+    refusal: Mapped[str | None] = mapped_column(Text)  # why: the refusal the ingest answered the gateway
 
 
 class UplinkConfigRow(Base):
