@@ -4,9 +4,11 @@ a gateway sent without them (revision 0009, docs/gateway.md "Uplink").
 A request is recorded here (``requested``); the gateway, which only talks outbound, polls for the
 ``requested`` ones of its site (:func:`pending_requests`) and answers each ``held`` (it queued the
 measurement again with its traces) or ``pruned`` (it no longer holds them) (:func:`answer_requests`);
-the ingest of the measurement with its traces makes it ``received`` (:func:`mark_received`).
+the ingest of the measurement with its traces makes it ``received`` (:func:`mark_received`), and a
+refusal of the record the gateway re-sent makes it ``refused``, with the refusal (:func:`refuse_resent`,
+revision 0012): the request ends there instead of waiting for traces that will not come.
 One request per measurement: asking again (after the centre's own retention dropped traces it had
-received) reuses the row. What a measurement's traces are, for the API, is :func:`traces_status` (pure).
+received, or after a refusal) reuses the row. What a measurement's traces are, for the API, is :func:`traces_status` (pure).
 """
 from __future__ import annotations
 
@@ -22,8 +24,9 @@ from db.clock import utc_now
 from db.errors import StorageError
 from db.models import IngestedRecordRow, MeasurementRow, NodeRow, TraceRequestRow, TraceRequestStatus
 
-TracesStatus = Literal["stored", "received", "requested", "held", "pruned", "at_gateway", "pruned_here"]
+TracesStatus = Literal["stored", "received", "requested", "held", "pruned", "refused", "at_gateway", "pruned_here"]
 RequestOutcome = Literal["here", "gone", "pending", "asked"]
+MAX_REFUSAL_CHARS = 2000  # what is kept of a refusal's text
 
 
 class TraceAnswerRefused(StorageError):
@@ -40,20 +43,25 @@ def traces_status(*, here: bool, from_gateway: bool, request: TraceRequestStatus
 
     ``stored`` / ``received``: here (``received``: after a request). ``requested``: asked, the
     gateway has not answered; ``held``: the gateway holds them and queued them; ``pruned``: the
-    gateway answered it no longer holds them. ``at_gateway``: a gateway's measurement sent without
+    gateway answered it no longer holds them; ``refused``: the gateway re-sent the measurement and
+    this site refused the record. ``at_gateway``: a gateway's measurement sent without
     them and not asked for (they can be requested); ``pruned_here``: this site's own retention
     removed them and no gateway has them to send.
     """
     if here:
         return "received" if request == TraceRequestStatus.RECEIVED else "stored"
     if request is not None and request != TraceRequestStatus.RECEIVED:
-        return cast(TracesStatus, request.value)  # requested, held, pruned
+        return cast(TracesStatus, request.value)  # requested, held, pruned, refused
     return "at_gateway" if from_gateway else "pruned_here"
 
 
 def request_outcome(status: TracesStatus) -> RequestOutcome:
     """What asking for the traces of a measurement in ``status`` does (pure): ``here`` (nothing to
-    ask), ``gone`` (no one holds them), ``pending`` (asked already, the answer stands), ``asked``."""
+    ask), ``gone`` (no one holds them), ``pending`` (asked already, the answer stands), ``asked``.
+
+    ``refused`` asks again: the gateway still holds the traces (its retention keeps those of a record
+    the centre refused), and the cause may have been put right at either end since; the same
+    record is refused the same way, and says so again."""
     if status in ("stored", "received"):
         return "here"
     if status in ("pruned", "pruned_here"):
@@ -74,6 +82,8 @@ class TracesState:
     requested_at: datetime | None = None
     answered_at: datetime | None = None
     received_at: datetime | None = None
+    refused_at: datetime | None = None
+    refusal: str | None = None  # why this site refused the record the gateway re-sent (status refused)
 
 
 def edge_record(session: Session, measurement_id: int) -> IngestedRecordRow | None:
@@ -97,7 +107,8 @@ def _state(measurement: MeasurementRow, edge: IngestedRecordRow | None, request:
                            measurement_uid=None if edge is None else edge.uid)
     return TracesState(status, gateway_id=request.gateway_id, measurement_uid=request.measurement_uid,
                        requested_by=request.requested_by, requested_at=request.requested_at,
-                       answered_at=request.answered_at, received_at=request.received_at)
+                       answered_at=request.answered_at, received_at=request.received_at,
+                       refused_at=request.refused_at, refusal=request.refusal)
 
 
 def traces_state(session: Session, measurement: MeasurementRow) -> TracesState:
@@ -124,7 +135,8 @@ def request_traces_of(
     request.status = TraceRequestStatus.REQUESTED
     request.requested_by = who
     request.requested_at = now or utc_now()
-    request.answered_at = request.received_at = None
+    request.answered_at = request.received_at = request.refused_at = None
+    request.refusal = None
     session.flush()
     return outcome, _state(measurement, edge, request)
 
@@ -173,3 +185,32 @@ def mark_received(session: Session, measurement_id: int, *, now: datetime | None
     if request is not None and request.status != TraceRequestStatus.RECEIVED:
         request.status = TraceRequestStatus.RECEIVED
         request.received_at = now or utc_now()
+        request.refused_at, request.refusal = None, None
+
+
+_AWAITING = (TraceRequestStatus.REQUESTED, TraceRequestStatus.HELD)
+
+
+def refuse_resent(
+    session: Session, measurement_uid: str, refusal: str, *, site: str, now: datetime | None = None,
+) -> bool:
+    """This site refused a gateway's record of ``measurement_uid`` (call inside ``Database.write()``,
+    after the batch's own transaction rolled back): a request of ``site`` for its traces still
+    awaiting them (``requested`` or ``held``) is ``refused``, with ``refusal``; True if one was.
+
+    Anything else is left as it is: no request, one of another site (a key writes for its own
+    site only), one ``received`` (the traces are here: a record that disagrees with them changes
+    nothing), ``pruned``, or ``refused`` already (a gateway tries a refused record again a few
+    times: the first refusal stands, like a first answer).
+    """
+    edge = session.get(IngestedRecordRow, measurement_uid)
+    if edge is None or edge.kind != "measurement":
+        return False  # not a measurement held here: no request can be waiting for it
+    request = _request(session, int(edge.central_id))
+    if request is None or request.site != site or request.status not in _AWAITING:
+        return False
+    request.status = TraceRequestStatus.REFUSED
+    request.refused_at = now or utc_now()
+    request.refusal = refusal[:MAX_REFUSAL_CHARS]
+    session.flush()
+    return True

@@ -7,6 +7,7 @@ key's scope and the concurrency bound.
 from __future__ import annotations
 
 import json
+import logging
 import zlib
 from typing import Any
 
@@ -15,7 +16,10 @@ from sqlalchemy import exc as sa_exc
 
 from db.database import Database
 from db.ingest import IngestOutcome, IngestRefused, ingest_batch
+from db.trace_requests import refuse_resent
 from uplink.contract import IngestBatch
+
+log = logging.getLogger("pipesentry.api")
 
 
 class BodyTooLarge(Exception):
@@ -91,6 +95,25 @@ def store(database: Database, batch: IngestBatch, *, key_site: str, alert_sinks:
             if attempt == 1:
                 raise IngestRefused("invalid", "the batch conflicts with records stored meanwhile; retry it") from None
     raise AssertionError("unreachable")
+
+
+def note_refusal(database: Database, kind: str | None, uid: str | None, refusal: str, *, key_site: str) -> bool:
+    """The batch was refused because of the record ``uid`` (a ``kind``): if it is a measurement whose
+    traces a request of ``key_site`` awaits (the gateway's re-send), that request ends ``refused``
+    with ``refusal`` (``db.trace_requests.refuse_resent``); True if one did.
+
+    Its own transaction, the batch's having rolled back. A StorageError propagates (the caller
+    answers 503, so the gateway sends the batch again, not counting a refusal, and the refusal is
+    noted then): a refusal is never answered without being noted.
+    """
+    if kind != "measurement" or uid is None:
+        return False
+    with database.write() as session:
+        refused = refuse_resent(session, uid, refusal, site=key_site)
+    if refused:
+        log.warning("ingest: the record re-sent with the traces of %s was refused, so is its trace request: %s",
+                    uid, refusal)
+    return refused
 
 
 class IngestGate:

@@ -212,7 +212,8 @@ class MeasurementSummary(_Out):
     traces_available: bool = Field(description="false once retention pruned the raw traces")
 
 
-TracesStatusName = Literal["stored", "received", "requested", "held", "pruned", "at_gateway", "pruned_here"]
+TracesStatusName = Literal["stored", "received", "requested", "held", "pruned", "refused", "at_gateway",
+                           "pruned_here"]
 
 
 class TracesState(_Out):
@@ -221,7 +222,8 @@ class TracesState(_Out):
     status: TracesStatusName = Field(
         description="stored: here; received: here, after a request; requested: asked, the gateway has not answered; "
         "held: the gateway holds them and has queued them for upload; pruned: the gateway answered it no longer "
-        "holds them; at_gateway: a gateway sent the measurement without them (its uplink policy), ask with POST "
+        "holds them; refused: the gateway re-sent the measurement with them and this site refused the record "
+        "(why: refusal; asking again is allowed); at_gateway: a gateway sent the measurement without them (its uplink policy), ask with POST "
         ".../traces/request; pruned_here: retention here removed them and no gateway has them to send")
     gateway_id: str | None = Field(description="the gateway that sent the measurement; null: this site's own")
     measurement_uid: str | None = Field(description="the measurement's uid at its gateway")
@@ -229,6 +231,10 @@ class TracesState(_Out):
     requested_at: datetime | None
     answered_at: datetime | None = Field(description="when the gateway answered held or pruned")
     received_at: datetime | None
+    refused_at: datetime | None = Field(description="when this site refused the record the gateway re-sent with "
+                                                    "the traces (status refused)")
+    refusal: str | None = Field(description="why: the refusal the centre answered the gateway, e.g. HTTP 422 "
+                                            "ingest-bad-record: traces (sha256 ...) are not the stored measurement's")
 
 
 class Measurement(MeasurementSummary):

@@ -9,6 +9,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
+from db.database import Database
 from db.ingest import IngestRefused
 from db.trace_requests import TraceAnswerRefused, answer_requests, pending_requests
 from service import ingest
@@ -48,7 +49,10 @@ _BODY_SCHEMA = {"content": {"application/json": {"schema": {"$ref": "#/component
                 "description": "uplink/contract.py's IngestBatch; `Content-Encoding: gzip` accepted"}
 
 
-def _refused(kind: ProblemKind, bad: BadRecord, request: Request) -> JSONResponse:
+async def _refused(kind: ProblemKind, bad: BadRecord, request: Request, database: Database, site: str) -> JSONResponse:
+    """The refusal of a batch; a trace request awaiting the refused record's traces ends ``refused`` first."""
+    await run_in_threadpool(ingest.note_refusal, database, bad.kind, bad.uid,
+                            f"HTTP {kind.status} {kind.slug}: {bad.error}", key_site=site)
     detail = bad.error if bad.index is None else f"record {bad.index} ({bad.uid}): {bad.error}"
     return problem_response(kind, detail, request, extra={"bad_record": bad.model_dump()})
 
@@ -78,13 +82,14 @@ async def ingest_batch(request: Request, caller: GatewayCaller, database: Databa
         try:
             batch = await run_in_threadpool(ingest.parse_batch, raw)
         except ValidationError as exc:
-            return _refused(BAD_RECORD, BadRecord(**ingest.bad_record_of(exc, raw)), request)
+            return await _refused(BAD_RECORD, BadRecord(**ingest.bad_record_of(exc, raw)), request, database,
+                                  caller.site or "")
         try:
             outcome = await run_in_threadpool(ingest.store, database, batch, key_site=caller.site or "",
                                               alert_sinks=list(settings.central_alert_sinks))
         except IngestRefused as exc:
             bad = BadRecord(index=exc.index, uid=exc.uid, kind=exc.kind, error=exc.error)
-            return _refused(_REFUSALS[exc.reason], bad, request)
+            return await _refused(_REFUSALS[exc.reason], bad, request, database, caller.site or "")
         return IngestResult(batch_id=batch.batch_id, accepted=outcome.accepted, duplicates=outcome.duplicates,
                             stale=outcome.stale)
     finally:

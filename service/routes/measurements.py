@@ -95,7 +95,8 @@ def get_di_map(measurement_id: MeasurementId, source: MapSource, database: Datab
 def request_traces(measurement_id: MeasurementId, caller: Operator, database: DatabaseDep,
                    response: Response) -> schemas.TracesState:
     """202: asked (or asked already and not yet in): the gateway polls for it, answers and sends them;
-    ``GET /measurements/{id}`` shows ``traces.status`` move to held, then received (or pruned)."""
+    ``GET /measurements/{id}`` shows ``traces.status`` move to held, then received (or pruned, or refused
+    with the ``refusal``: asked again from there, the request starts over)."""
     with database.write() as session:
         outcome, state = request_traces_of(session, get_measurement(session, measurement_id), who=caller.name)
     if outcome == "gone":
