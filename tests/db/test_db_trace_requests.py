@@ -1,6 +1,6 @@
 """Raw traces on demand at the central site: a measurement stored without its traces takes them from a
 later upload of the same uid, and only that; the request for them moves requested -> held/pruned ->
-received. On SQLite and PostgreSQL (the ingest runs in one transaction on either)."""
+received, or -> refused (with why) when the record the gateway re-sent is refused. On SQLite and PostgreSQL (the ingest runs in one transaction on either)."""
 from __future__ import annotations
 
 import pytest
@@ -14,6 +14,7 @@ from db.trace_requests import (
     TraceAnswerRefused,
     answer_requests,
     pending_requests,
+    refuse_resent,
     request_outcome,
     request_traces_of,
     traces_state,
@@ -55,6 +56,7 @@ def state(db: Database):
     (False, True, TraceRequestStatus.REQUESTED, "requested", "pending"),
     (False, True, TraceRequestStatus.HELD, "held", "pending"),
     (False, True, TraceRequestStatus.PRUNED, "pruned", "gone"),
+    (False, True, TraceRequestStatus.REFUSED, "refused", "asked"),  # the gateway still holds them: ask again
     (False, True, TraceRequestStatus.RECEIVED, "at_gateway", "asked"),  # received, then pruned here: ask again
     (False, False, None, "pruned_here", "gone"),
 ])
@@ -102,6 +104,68 @@ def test_traces_that_are_not_the_stored_measurements_are_refused(any_db: Databas
     assert refused.value.reason == "invalid" and refused.value.index == 0
     assert "a stored measurement does not change" in refused.value.error
     assert measurement(any_db).traces_blob is None
+
+
+def refused_upload(db: Database, record, site: str = "north") -> str:
+    """Send ``record`` as the gateway re-sending it; it must be refused. What the centre notes, as the
+    ingest route does (the batch rolled back, then the refusal in a transaction of its own)."""
+    with pytest.raises(IngestRefused) as refused:
+        store(db, [record], site=site)
+    with db.write() as session:
+        refuse_resent(session, record.uid, f"HTTP 422 ingest-bad-record: {refused.value.error}", site=site)
+    return refused.value.error
+
+
+def test_a_held_request_whose_resent_record_is_refused_ends_refused_with_why_and_can_be_asked_again(any_db: Database):
+    store(any_db, node_history(GW, "pipe-1", 1, 1, traces=False))
+    ask(any_db)
+    with any_db.write() as session:
+        [pending] = pending_requests(session, site="north", gateway_id=GW, limit=1)
+        answer_requests(session, [(pending.id, UID, "held")], site="north", gateway_id=GW)
+    assert state(any_db).status == "held"
+
+    # Not this measurement's traces (a checksum, a length that is not the one stored): refused, and the request says so.
+    other = measurement_record(GW, "pipe-1", 2).model_copy(update={"uid": UID})
+    why = refused_upload(any_db, other, site="south")  # another site's key cannot end north's request
+    assert state(any_db).status == "held"
+    why = refused_upload(any_db, other)
+    refused = state(any_db)
+    assert refused.status == "refused" and refused.refused_at is not None
+    assert refused.refusal == f"HTTP 422 ingest-bad-record: {why}" and "a stored measurement does not change" in why
+    assert (refused.requested_by, refused.answered_at) == ("operator-1", state(any_db).answered_at)
+    assert measurement(any_db).traces_blob is None and measurement(any_db).traces_pruned_at is not None
+    with any_db.session() as session:  # nothing left for the gateway to answer
+        assert pending_requests(session, site="north", gateway_id=GW, limit=10) == []
+
+    # The gateway tries the refused record again: the first refusal stands; a late answer changes nothing.
+    with any_db.write() as session:
+        assert not refuse_resent(session, UID, "HTTP 422 ingest-bad-record: again", site="north")
+        assert answer_requests(session, [(pending.id, UID, "held")], site="north", gateway_id=GW) == 0
+    assert (state(any_db).refusal, state(any_db).refused_at) == (refused.refusal, refused.refused_at)
+
+    # Asked again (the cause put right): the request starts over, and the right traces end it received.
+    outcome, again = ask(any_db, who="operator-2")
+    assert (outcome, again.status, again.requested_by) == ("asked", "requested", "operator-2")
+    assert (again.refusal, again.refused_at, again.answered_at) == (None, None, None)
+    with any_db.write() as session:
+        assert answer_requests(session, [(pending.id, UID, "held")], site="north", gateway_id=GW) == 1
+    right = measurement_record(GW, "pipe-1", 1)
+    assert store(any_db, [right]).accepted == 1
+    received = state(any_db)
+    assert (received.status, received.refusal, received.refused_at) == ("received", None, None)
+    assert measurement(any_db).traces_blob == right.traces.raw()
+
+
+def test_only_a_refused_measurement_awaiting_its_traces_ends_a_request(any_db: Database):
+    store(any_db, node_history(GW, "pipe-1", 1, 1, traces=False))
+    with any_db.write() as session:
+        assert not refuse_resent(session, UID, "x", site="north")  # no request
+        assert not refuse_resent(session, f"{GW}/detection/1", "x", site="north")  # not a measurement
+        assert not refuse_resent(session, f"{GW}/measurement/99", "x", site="north")  # not held here
+    ask(any_db)
+    with any_db.write() as session:
+        assert refuse_resent(session, UID, "y" * 5000, site="north")  # requested, the answer lost: refused too
+    assert state(any_db).status == "refused" and state(any_db).refusal == "y" * 2000  # bounded
 
 
 def test_a_gateway_answers_only_its_own_requests(any_db: Database):

@@ -5,6 +5,7 @@ concurrent replay; the batches are built with the wire contract the gateways use
 """
 from __future__ import annotations
 
+import base64
 import gzip
 import json
 import threading
@@ -240,3 +241,70 @@ def test_the_same_batch_from_two_workers_at_once_is_stored_once(postgres_url: st
         assert sorted(a.status_code for a in answers) == [200] * 4, [a.text for a in answers]
         assert sum(a.json()["accepted"] for a in answers if a.json()["accepted"] > 1) == 41
         assert [centre.count(m) for m in (NodeRow, MeasurementRow, DetectionRow)] == [1, 20, 20]
+
+
+def test_a_resent_record_the_centre_refuses_ends_its_trace_request_refused_with_why(centre: Centre):
+    """Traces on demand, over HTTP: a request answered held whose re-sent record is refused (by the
+    contract's own checks or by the stored measurement's) ends ``refused`` with the refusal, and
+    the measurement keeps no traces but its own; asked again, the request starts over."""
+    from db.api_keys import create_api_key
+    from db.models import Role
+    from uplink.contract import TRACE_ANSWERS_PATH, TRACE_REQUESTS_PATH
+
+    with centre.database.write() as session:
+        operator = create_api_key(session, name="operator-ana", role=Role.OPERATOR)[1]
+    assert centre.post(batch_of("gw-n1", "north", node_history("gw-n1", "pipe-1", 1, 2, traces=False)),
+                       centre.north).status_code == 200
+    with centre.database.session() as session:
+        first, second = session.scalars(select(MeasurementRow.id).order_by(MeasurementRow.id)).all()
+
+    def gateway_answers_held() -> None:
+        asked = httpx.get(f"{centre.url}{TRACE_REQUESTS_PATH}", params={"gateway_id": "gw-n1"}, timeout=10,
+                          headers={"Authorization": f"Bearer {centre.north}"}).json()["items"]
+        answers = [{"request_id": a["request_id"], "measurement_uid": a["measurement_uid"], "answer": "held"}
+                   for a in asked]
+        answered = httpx.post(f"{centre.url}{TRACE_ANSWERS_PATH}", timeout=10,
+                              json={"gateway_id": "gw-n1", "site": "north", "answers": answers},
+                              headers={"Authorization": f"Bearer {centre.north}"})
+        assert answered.status_code == 200 and answered.json()["updated"] == len(asked) >= 1
+
+    def ask(measurement_id: int) -> httpx.Response:
+        return httpx.post(f"{centre.url}/api/v1/measurements/{measurement_id}/traces/request", timeout=10,
+                          headers={"Authorization": f"Bearer {operator}"})
+
+    def traces(measurement_id: int) -> dict:
+        return centre.get(f"/measurements/{measurement_id}").json()["traces"]
+
+    assert ask(first).status_code == 202 and ask(second).status_code == 202
+    gateway_answers_held()
+    assert traces(first)["status"] == traces(second)["status"] == "held"
+
+    # 1. Other traces under the stored measurement's uid: refused by the stored checksum (422).
+    other = measurement_record("gw-n1", "pipe-1", 7).model_copy(update={"uid": "gw-n1/measurement/1"})
+    body = assert_problem(centre.post(batch_of("gw-n1", "north", [other]), centre.north), 422, "ingest-bad-record")
+    state = traces(first)
+    assert state["status"] == "refused" and state["refused_at"]
+    assert state["refusal"] == f"HTTP 422 ingest-bad-record: {body['bad_record']['error']}"
+    assert "a stored measurement does not change" in state["refusal"]
+    # 2. Bytes that do not match their own checksum: refused by the contract before anything is read.
+    damaged = measurement_record("gw-n1", "pipe-1", 2).model_dump(mode="json")
+    stored = bytearray(base64.b64decode(damaged["traces"]["data"]))
+    stored[100] ^= 0x01  # one bit flipped on the way: the length is right, the checksum is not
+    damaged["traces"]["data"] = base64.b64encode(stored).decode()
+    raw = batch_of("gw-n1", "north", [node_record("gw-n1", "pipe-1")]).model_dump(mode="json")
+    raw["records"].append(damaged)
+    assert_problem(centre.post(json.dumps(raw).encode(), centre.north), 422, "ingest-bad-record")
+    state = traces(second)
+    assert (state["status"], state["refusal"]) == ("refused", "HTTP 422 ingest-bad-record: traces: data does not "
+                                                              "match its sha256")
+    with centre.database.session() as session:  # no traces taken from either
+        assert all(row.traces_blob is None for row in session.scalars(select(MeasurementRow)))
+
+    # Asked again, the request starts over; the measurement's own traces end it received.
+    again = ask(first)
+    assert again.status_code == 202 and again.json()["status"] == "requested" and again.json()["refusal"] is None
+    gateway_answers_held()
+    right = measurement_record("gw-n1", "pipe-1", 1)
+    assert centre.post(batch_of("gw-n1", "north", [right]), centre.north).json()["accepted"] == 1
+    assert (traces(first)["status"], traces(first)["refusal"]) == ("received", None)
+    assert traces(second)["status"] == "refused"  # the other one's refusal stands until it is asked again
