@@ -7,6 +7,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
+from contextlib import contextmanager
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -355,6 +356,60 @@ def test_downgrading_to_0009_forgets_the_nodes_never_seen_with_their_events_and_
         assert database.schema_revision() == head_revision()
     finally:
         database.dispose()
+
+
+@pytest.mark.parametrize("url_fixture", ["sqlite_url", pytest.param("postgres_url", marks=pytest.mark.postgres)])
+def test_trace_requests_of_an_older_release_are_kept_can_be_refused_and_going_down_a_refused_one_is_forgotten(
+    request, url_fixture
+):
+    from sqlalchemy import insert, select
+
+    from db.models import TraceRequestRow, TraceRequestStatus
+
+    url = request.getfixturevalue(url_fixture)
+    old_id = database_of_release(url, "0009")  # trace_requests as revisions 0009 to 0011 have it
+    with _engine(url) as engine, engine.begin() as connection:
+        connection.execute(text(  # a request the gateway answered held, as those revisions stored it
+            "INSERT INTO trace_requests (measurement_id, measurement_uid, gateway_id, site, status, requested_by, "
+            "requested_at, answered_at) VALUES (:m, 'gw-n1/measurement/1', 'gw-n1', 'north', 'held', 'op', :t, :t)"
+        ), {"m": old_id, "t": T0})
+    database = open_database(url)
+    try:
+        assert database.schema_revision() == head_revision() != "0009"
+        with database.write() as session:
+            held = session.scalars(select(TraceRequestRow)).one()
+            assert (held.status, held.answered_at, held.refused_at, held.refusal) == ("held", T0, None, None)
+            held.status, held.refused_at, held.refusal = TraceRequestStatus.REFUSED, T0, "HTTP 422 ingest-bad-record: x"
+            other = store_sample(session, seed=2)
+            session.execute(insert(TraceRequestRow).values(
+                measurement_id=other.id, measurement_uid="gw-n1/measurement/2", gateway_id="gw-n1", site="north",
+                status=TraceRequestStatus.HELD, requested_by="op", requested_at=T0))
+        with pytest.raises(IntegrityError), database.write() as session:  # the CHECK still holds the list
+            session.execute(text("UPDATE trace_requests SET status = 'lost'"))
+        with database.engine.connect() as connection:
+            command.downgrade(alembic_config(connection), "0011")
+            connection.commit()
+            rows = connection.execute(text("SELECT measurement_uid, status FROM trace_requests")).all()
+            columns = {c["name"] for c in inspect(connection).get_columns("trace_requests")}
+        assert [tuple(row) for row in rows] == [("gw-n1/measurement/2", "held")]  # the refused one forgotten
+        assert not {"refused_at", "refusal"} & columns
+        with pytest.raises(IntegrityError), database.engine.begin() as connection:  # 0011 holds no refused
+            connection.execute(text("UPDATE trace_requests SET status = 'refused'"))
+        upgrade_to_head(database.engine)
+        assert database.schema_revision() == head_revision()
+    finally:
+        database.dispose()
+
+
+@contextmanager
+def _engine(url: str):
+    from sqlalchemy import create_engine
+
+    engine = create_engine(url)
+    try:
+        yield engine
+    finally:
+        engine.dispose()
 
 
 def test_migrations_downgrade_to_empty_and_upgrade_again(any_db):
