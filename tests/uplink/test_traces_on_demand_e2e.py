@@ -8,6 +8,7 @@ mock node over a pty, the gateway's real retention.
 """
 from __future__ import annotations
 
+import hashlib
 from contextlib import ExitStack
 from datetime import timedelta
 from pathlib import Path
@@ -105,3 +106,74 @@ def test_an_operator_gets_the_traces_of_an_unflagged_measurement_and_hears_when_
                         for answer in ("held", "pruned")}
             assert answered == {"held": 1.0, "pruned": 1.0}
             assert sample(metrics, "pipesentry_gateway_uplink_trace_request_failures_total") == 0.0
+
+
+def test_a_resent_record_the_centre_refuses_ends_the_request_refused_with_why_and_loses_no_traces(
+    tmp_path: Path, sqlite_url: str,
+):
+    """The centre's description of a measurement disagrees with the traces its gateway holds (another
+    checksum): the gateway answers ``held`` and re-sends them, the centre refuses the record (422),
+    and the operator sees the request end ``refused`` with the refusal instead of ``held`` for ever.
+    Nothing is taken at the centre, the gateway keeps the traces (its retention too), its queue goes
+    on; once the description is put right, asking again brings them, byte for byte."""
+    with serve_centre(sqlite_url) as centre:
+        with centre.database.write() as session:
+            operator = create_api_key(session, name="operator-ana", role=Role.OPERATOR)[1]
+        with (north_edge(centre, tmp_path, gateway_id=GATEWAY, node_id=NODE, seed=711, send="flagged_traces",
+                        requests_every_s=0.3) as site, ExitStack() as stack):
+            [wanted] = wait_until(lambda: sent_without_traces(centre, 1), STEP_TIMEOUT_S, 0.3,
+                                  what="a calm measurement at the centre without its traces")
+            with centre.database.write() as session:
+                row = session.get(MeasurementRow, wanted)
+                assert row is not None
+                true_sha256, row.traces_sha256 = row.traces_sha256, "0" * 64
+
+            assert ask(centre, operator, wanted).status_code == 202
+            wait_until(lambda: traces_of(centre, wanted)["status"] == "refused", STEP_TIMEOUT_S, 0.2,
+                       what="the request refused, not held for ever")
+            state = traces_of(centre, wanted)
+            assert state["answered_at"] and state["refused_at"] and state["received_at"] is None
+            assert state["refusal"].startswith("HTTP 422 ingest-bad-record: traces (sha256 ")
+            assert "a stored measurement does not change" in state["refusal"]
+
+            local_id = int(state["measurement_uid"].rsplit("/", 1)[1])
+            edge = open_database(f"sqlite:///{site.database_path}", upgrade=False)
+            stack.callback(edge.dispose)
+            port = gateway_metrics_port(site.gateway)
+
+            def newest_at_centre() -> int:
+                return int(centre.get(f"/nodes/{NODE}/measurements", limit=1, order="desc").json()["items"][0]["id"])
+
+            def gateway_metric(name: str, **labels: str) -> float:
+                return sample(httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5.0).text, name, **labels)
+
+            wait_until(lambda: gateway_metric("pipesentry_gateway_uplink_refused_records") == 1.0, STEP_TIMEOUT_S,
+                       0.2, what="the gateway setting the refused record aside")
+            newest = wait_until(lambda: newest_at_centre() > wanted + 1 and newest_at_centre(), STEP_TIMEOUT_S, 0.3,
+                                what="the node's later records still replicating")
+            prune_traces(edge.write, timedelta(0), 100)  # retention keeps what the centre has not got
+            with edge.session() as session, centre.database.session() as central:
+                at_gateway = session.get(MeasurementRow, local_id, options=[undefer(MeasurementRow.traces_blob)])
+                here = central.get(MeasurementRow, wanted, options=[undefer(MeasurementRow.traces_blob)])
+                assert at_gateway is not None and at_gateway.traces_blob is not None
+                assert hashlib.sha256(at_gateway.traces_blob).hexdigest() == at_gateway.traces_sha256 == true_sha256
+                assert here is not None and here.traces_blob is None and here.traces_pruned_at is not None
+            assert centre.get(f"/measurements/{wanted}/traces").status_code == 410
+            assert traces_of(centre, wanted)["status"] == "refused"  # the gateway's further tries changed nothing
+            assert newest_at_centre() >= newest
+
+            # The cause put right: asked again, the request starts over and the traces come.
+            with centre.database.write() as session:
+                row = session.get(MeasurementRow, wanted)
+                assert row is not None
+                row.traces_sha256 = true_sha256
+            again = ask(centre, operator, wanted)
+            assert again.status_code == 202 and again.json()["status"] == "requested"
+            assert again.json()["refusal"] is None
+            wait_until(lambda: traces_of(centre, wanted)["status"] == "received", STEP_TIMEOUT_S, 0.2,
+                       what="the traces asked for again")
+            with edge.session() as session, centre.database.session() as central:
+                at_gateway = session.get(MeasurementRow, local_id, options=[undefer(MeasurementRow.traces_blob)])
+                here = central.get(MeasurementRow, wanted, options=[undefer(MeasurementRow.traces_blob)])
+                assert at_gateway is not None and here is not None and here.traces_blob == at_gateway.traces_blob
+            assert gateway_metric("pipesentry_gateway_uplink_trace_requests_total", answer="held") == 2.0
