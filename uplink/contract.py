@@ -26,7 +26,9 @@ Rules the models state and check:
   omitted (``data`` null) when the gateway's uplink policy sends no traces for it.
 * traces on demand: the gateway polls ``TRACE_REQUESTS_PATH`` for the centre's requests for
   traces it did not send (:class:`TraceRequests`), queues each measurement again with its
-  traces if it still holds them, and answers ``held`` or ``pruned`` (:class:`TraceAnswers`).
+  traces if it still holds them, and answers ``held`` or ``pruned`` (:class:`TraceAnswers`). A
+  re-sent record the centre refuses is refused as any record is (the 422/403/409 names it); the
+  centre itself ends the request ``refused`` with that refusal, so nothing more travels for it.
 """
 from __future__ import annotations
 
