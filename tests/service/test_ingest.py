@@ -16,7 +16,16 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from db.models import BaselineRow, DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow
+from db.models import (
+    BaselineRow,
+    DeliveryRow,
+    DetectionRow,
+    DiMapRow,
+    EventRow,
+    MeasurementRow,
+    NodeRow,
+    TraceRequestRow,
+)
 from tests.support.api_fixtures import assert_problem
 from tests.support.central_site import Centre, serve_centre
 from tests.support.db_fixtures import T0
@@ -308,3 +317,38 @@ def test_a_resent_record_the_centre_refuses_ends_its_trace_request_refused_with_
     assert centre.post(batch_of("gw-n1", "north", [right]), centre.north).json()["accepted"] == 1
     assert (traces(first)["status"], traces(first)["refusal"]) == ("received", None)
     assert traces(second)["status"] == "refused"  # the other one's refusal stands until it is asked again
+
+
+def test_a_refusal_that_cannot_be_noted_is_answered_503_so_the_gateway_sends_it_again(
+    centre: Centre, monkeypatch: pytest.MonkeyPatch,
+):
+    """A trace request must not stay held because the centre could not write its refusal: the
+    batch is answered 503 storage-unavailable (retried by the gateway, no refusal counted), and
+    the refusal noted once the database writes again."""
+    from db.errors import StorageBusy
+    from db.trace_requests import answer_requests, request_traces_of, traces_state
+    from service import ingest as service_ingest
+
+    assert centre.post(batch_of("gw-n1", "north", node_history("gw-n1", "pipe-1", 1, 1, traces=False)),
+                       centre.north).status_code == 200
+    with centre.database.write() as session:
+        row = session.scalars(select(MeasurementRow)).one()
+        request_traces_of(session, row, who="operator-ana")
+        [request_id] = session.scalars(select(TraceRequestRow.id)).all()
+        answer_requests(session, [(request_id, "gw-n1/measurement/1", "held")], site="north", gateway_id="gw-n1")
+
+    def status() -> str:
+        with centre.database.session() as session:
+            return traces_state(session, session.scalars(select(MeasurementRow)).one()).status
+    other = batch_of("gw-n1", "north", [measurement_record("gw-n1", "pipe-1", 7).model_copy(
+        update={"uid": "gw-n1/measurement/1"})])
+
+    def busy(*args: object, **kwargs: object) -> bool:
+        raise StorageBusy("database is locked")
+
+    monkeypatch.setattr(service_ingest, "refuse_resent", busy)
+    assert_problem(centre.post(other, centre.north), 503, "storage-unavailable")
+    assert status() == "held"
+    monkeypatch.undo()
+    assert_problem(centre.post(other, centre.north), 422, "ingest-bad-record")
+    assert status() == "refused"
