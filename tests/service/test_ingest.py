@@ -16,16 +16,7 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from db.models import (
-    BaselineRow,
-    DeliveryRow,
-    DetectionRow,
-    DiMapRow,
-    EventRow,
-    MeasurementRow,
-    NodeRow,
-    TraceRequestRow,
-)
+from db.models import BaselineRow, DeliveryRow, DetectionRow, DiMapRow, EventRow, MeasurementRow, NodeRow
 from tests.support.api_fixtures import assert_problem
 from tests.support.central_site import Centre, serve_centre
 from tests.support.db_fixtures import T0
@@ -326,6 +317,7 @@ def test_a_refusal_that_cannot_be_noted_is_answered_503_so_the_gateway_sends_it_
     batch is answered 503 storage-unavailable (retried by the gateway, no refusal counted), and
     the refusal noted once the database writes again."""
     from db.errors import StorageBusy
+    from db.models import TraceRequestRow
     from db.trace_requests import answer_requests, request_traces_of, traces_state
     from service import ingest as service_ingest
 
