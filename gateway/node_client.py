@@ -5,19 +5,26 @@ instead of running it twice (no double acquisition); ERROR BUSY is retried the s
 reads included. Bulk replies are reassembled from chunks; only lost chunks are asked for again
 (the whole transfer from a node without CHUNK_RETRANSMIT); the whole transfer is checked
 against its CRC-32C. INFO negotiates the protocol version (docs/protocol.md, 3.1): a version-1
-node is spoken to in version 1, and its records carry fewer of their own settings.
+node is spoken to in version 1, and its records carry fewer of their own settings. The errors
+are in ``gateway.node_errors``; what a transfer returns, in ``gateway.node_transfers``.
 """
 from __future__ import annotations
 
 import random
 import time
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
+from gateway.node_errors import (
+    CapabilityMissing,
+    NodeError,
+    NodeRebooted,
+    NodeTimeout,
+    ProtocolMismatch,
+    TransferError,
+)
+from gateway.node_transfers import DiTransfer, TraceTransfer, di_transfer, mask_of, trace_transfer
 from imaging.grid import Grid
-from nodelink.transport import NodeLinkError, PortVanished, SerialTransport
+from nodelink.transport import SerialTransport
 from protocol.bulk import BulkAssembler, BulkError, TransferCrcError
 from protocol.framing import FLAG_LAST, Frame, FrameDecoder, FrameError, encode_frame
 from protocol.messages import (
@@ -50,115 +57,6 @@ from protocol.messages import (
 )
 from protocol.versions import HELLO_VERSION, OLDEST_VERSION, PROTOCOL_VERSION, SUPPORTED_VERSIONS
 from retry_timing.backoff import Backoff
-
-__all__ = [
-    "CapabilityMissing",
-    "DiTransfer",
-    "NodeClient",
-    "NodeClientError",
-    "NodeError",
-    "NodeRebooted",
-    "NodeTimeout",
-    "PortVanished",
-    "ProtocolMismatch",
-    "TraceTransfer",
-    "TransferError",
-]
-
-
-NodeClientError = NodeLinkError  # the base of every error below (and of PortVanished)
-
-
-class NodeTimeout(NodeClientError):
-    """The node did not answer within the timeout, after every retry."""
-
-
-class ProtocolMismatch(NodeClientError):
-    """The node speaks another protocol version, or sent a CRC-valid frame we cannot parse."""
-
-
-class NodeError(NodeClientError):
-    """The node answered with an ERROR reply; ``code`` is an :class:`ErrorCode` (or raw int)."""
-
-    def __init__(self, code: int, detail: str, request_type: int) -> None:
-        try:
-            self.code: ErrorCode | int = ErrorCode(code)
-        except ValueError:
-            self.code = code
-        self.detail = detail
-        self.request_type = request_type
-        name = self.code.name if isinstance(self.code, ErrorCode) else str(code)
-        super().__init__(f"node error {name} on request 0x{request_type:02X}: {detail}")
-
-
-class CapabilityMissing(NodeClientError):
-    """The command needs a capability the node's INFO does not announce; nothing was sent."""
-
-
-class NodeRebooted(NodeClientError):
-    """The node's boot id changed during a transfer: its RAM (measurements, DI maps) is gone."""
-
-
-class TransferError(NodeClientError):
-    """A bulk transfer could not be completed and verified (CRC-32C) within the retries."""
-
-
-@dataclass(frozen=True)
-class TraceTransfer:
-    """Raw ADC codes of one measurement, verified end to end."""
-
-    measurement_id: int
-    boot_id: int
-    is_baseline: bool
-    channels: tuple[int, ...]
-    start: int
-    codes: np.ndarray  # int16 [n_channels, n_samples]
-    volts_per_code: float
-    fs_hz: float
-    t0_s: float
-    temperature_c: float
-    adc_bits: int
-    transfer_crc32c: int
-    chunks_rerequested: int
-    # What the record was taken with, as the node states it (protocol version 2; None from version 1).
-    excitation_hz: float | None = None
-    cycles: int | None = None
-    averaging: int | None = None
-    record_channels: tuple[int, ...] | None = None
-    record_n_samples: int | None = None
-
-    @property
-    def volts(self) -> np.ndarray:
-        return self.codes.astype(np.float64) * self.volts_per_code
-
-
-@dataclass(frozen=True)
-class DiTransfer:
-    """An on-board DI map, verified end to end."""
-
-    di_id: int
-    boot_id: int
-    current_id: int
-    baseline_id: int
-    decimation: int
-    grid: Grid
-    pixels: np.ndarray  # float32 [n_axial, n_angle]
-    transfer_crc32c: int
-    chunks_rerequested: int
-
-
-def _mask_of(channels: tuple[int, ...] | list[int] | None, n_channels: int) -> int:
-    chosen = range(n_channels) if channels is None else channels
-    mask = 0
-    for ch in chosen:
-        if not 0 <= ch < 32:
-            raise ValueError(f"channel {ch} is outside 0..31")
-        mask |= 1 << ch
-    return mask
-
-
-def _channels_of(mask: int) -> tuple[int, ...]:
-    return tuple(i for i in range(32) if mask >> i & 1)
 
 
 class NodeClient:
@@ -239,7 +137,7 @@ class NodeClient:
         channels: tuple[int, ...] | list[int] | None = None,
     ) -> ConfigureReply:
         """Set excitation and acquisition; returns what the node applied."""
-        mask = _mask_of(channels, self._known_info().n_channels)
+        mask = mask_of(channels, self._known_info().n_channels)
         reply = self._command(ConfigureRequest(excitation_hz, cycles, averaging, mask, n_samples), ConfigureReply)
         self._averaging = reply.averaging
         return reply
@@ -270,36 +168,17 @@ class NodeClient:
         start: int = 0, count: int | None = None,
     ) -> TraceTransfer:
         """Raw int16 codes [n_channels, n] of one measurement, CRC-32C verified."""
-        mask = _mask_of(channels, self._known_info().n_channels)
+        mask = mask_of(channels, self._known_info().n_channels)
 
         def request(chunks: tuple[int, ...]) -> ReadTracesRequest:
             return ReadTracesRequest(measurement_id, mask, start, count or 0, chunks)
 
-        meta, data, rerequested = self._bulk(request, TraceMeta)
-        n_ch = len(_channels_of(meta.channel_mask))
-        codes = np.frombuffer(data, dtype="<i2").astype(np.int16)
-        if n_ch == 0 or codes.size != n_ch * meta.count:
-            raise TransferError(f"{codes.size} codes do not fill {n_ch} channels x {meta.count} samples")
-        return TraceTransfer(
-            meta.measurement_id, meta.boot_id, bool(meta.is_baseline), _channels_of(meta.channel_mask),
-            meta.start, codes.reshape(n_ch, meta.count), meta.volts_per_code, meta.fs_hz, meta.t0_s,
-            meta.temperature_c, meta.adc_bits, meta.transfer_crc32c, rerequested,
-            excitation_hz=meta.excitation_hz, cycles=meta.cycles, averaging=meta.averaging,
-            record_channels=None if meta.record_channel_mask is None else _channels_of(meta.record_channel_mask),
-            record_n_samples=meta.record_n_samples,
-        )
+        return trace_transfer(*self._bulk(request, TraceMeta))
 
     def read_di(self, di_id: int) -> DiTransfer:
         """Pixels float32 [n_axial, n_angle] of an on-board DI map, CRC-32C verified."""
         self._require(CAP_ON_BOARD_DI)
-        meta, data, rerequested = self._bulk(lambda chunks: ReadDiRequest(di_id, chunks), DiMeta)
-        pixels = np.frombuffer(data, dtype="<f4").astype(np.float32)
-        if pixels.size != meta.n_axial * meta.n_angle:
-            raise TransferError(f"{pixels.size} pixels do not fill {meta.n_axial} x {meta.n_angle}")
-        grid = Grid(meta.axial_start_mm, meta.axial_step_mm, meta.n_axial,
-                    meta.angle_start_deg, meta.angle_step_deg, meta.n_angle)
-        return DiTransfer(meta.di_id, meta.boot_id, meta.current_id, meta.baseline_id, meta.decimation,
-                          grid, pixels.reshape(meta.n_axial, meta.n_angle), meta.transfer_crc32c, rerequested)
+        return di_transfer(*self._bulk(lambda chunks: ReadDiRequest(di_id, chunks), DiMeta))
 
     # ------------------------------------------------------------------ machinery
     def _known_info(self) -> InfoReply:

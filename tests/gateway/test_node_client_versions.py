@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gateway.node_client import CapabilityMissing, NodeClient, NodeTimeout
+from gateway.node_client import NodeClient
+from gateway.node_errors import CapabilityMissing, NodeTimeout
 from mocknode.faults import FaultSpec
 from mocknode.scenario import FirmwareSpec, NodeScenario, default_scenario
 from mocknode.server import MockNodeServer
