@@ -24,7 +24,9 @@ from db.models import MapSource
 from db.records import AcquisitionInput, DiMapInput, MapGrid, NodeInfo
 from gateway.config import NodeSettings
 from gateway.geometry import effective_geometry
-from gateway.node_client import NodeClient, NodeClientError, NodeRebooted, ProtocolMismatch, TraceTransfer
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeClientError, NodeRebooted, ProtocolMismatch
+from gateway.node_transfers import TraceTransfer
 from gateway.record_settings import (
     RecordSettings,
     SettingsNotStated,

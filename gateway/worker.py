@@ -67,19 +67,12 @@ from gateway.decision import (
 from gateway.flagging import FlagState, restored_flag_state, threshold_for
 from gateway.geometry import effective_geometry
 from gateway.logs import node_context
-from gateway.node_client import (
-    NodeClient,
-    NodeClientError,
-    NodeRebooted,
-    NodeTimeout,
-    PortVanished,
-    ProtocolMismatch,
-    TransferError,
-)
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeClientError, NodeRebooted, NodeTimeout, ProtocolMismatch, TransferError
 from gateway.watchdog import Heartbeats
 from imaging.detection import default_threshold
 from imaging.pipeline import Assessment, assess
-from nodelink.transport import PORT_ERRORS
+from nodelink.transport import PORT_ERRORS, PortVanished
 from retry_timing.backoff import Backoff
 
 log = logging.getLogger("pipesentry.gateway")

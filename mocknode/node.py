@@ -2,35 +2,38 @@
 
 Implements docs/protocol.md exactly as the firmware should: version negotiation (it speaks
 versions 1 and 2 and answers each request in the version of its header), the reply cache by
-request id, a few measurements in bounded RAM plus a baseline slot, chunked bulk replies, the
-on-board DI map computed on decimated data, capabilities, BUSY while an acquisition runs. The
-scenario's ``violations`` make it break single requirements on purpose. Timing, line faults
-and reboots belong to ``server.py``.
+request id (``reply_cache.py``), capabilities, BUSY while an acquisition runs, and each
+command on the node's state: its settings (``node_settings.py``), acquisitions
+(``measuring.py``) kept in bounded RAM plus a baseline slot (``node_ram.py``), chunked bulk
+replies (``bulk_replies.py``), the on-board DI map computed on decimated data
+(``onboard_di.py``). A command refuses by raising ``refusal.Refused``. The scenario's
+``violations`` make it break single requirements on purpose. Timing, line faults and reboots
+belong to ``server.py``.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import random
 import time
-from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
 from imaging.dimap import BaselineMismatch
-from imaging.grid import Grid, GridError
+from imaging.grid import GridError
 from imaging.measurement import Measurement, MeasurementError
-from mocknode import physics
+from mocknode import measuring, physics
+from mocknode.bulk_replies import CHUNK_BYTES, di_reply, trace_reply
 from mocknode.faults import Violation
+from mocknode.node_ram import MAX_CHANNELS, MAX_MEASUREMENTS, NodeRam, StoredMeasurement
+from mocknode.node_settings import configured, configured_scenario, max_samples, power_up_settings
 from mocknode.onboard_di import Decimation, GridRefused, decimated, onboard_map, requested_grid
-from mocknode.recorded import RecordError, acquire_recorded, load_recorded_pipe
+from mocknode.recorded import RecordError, load_recorded_pipe
+from mocknode.refusal import Refused
+from mocknode.reply_cache import ReplyCache
 from mocknode.scenario import NodeScenario
 from mocknode.violations import StaleCrcFrame, lenient_decode
-from protocol.bulk import n_chunks_for, split_chunks
-from protocol.crc import crc32c
 from protocol.framing import FLAG_CACHED, FLAG_LAST, FLAG_REPLY, MAX_FRAME_BYTES, Frame
 from protocol.messages import (
     CAP_BASELINE_SLOT,
@@ -38,12 +41,10 @@ from protocol.messages import (
     CAP_ON_BOARD_DI,
     AcquireReply,
     AcquireRequest,
-    BulkChunk,
     ComputeDiReply,
     ComputeDiRequest,
     ConfigureReply,
     ConfigureRequest,
-    DiMeta,
     ErrorCode,
     ErrorReply,
     InfoReply,
@@ -55,18 +56,12 @@ from protocol.messages import (
     ReadTracesRequest,
     StatusReply,
     StatusRequest,
-    TraceMeta,
     UnknownMessageType,
     decode_message,
 )
 from protocol.versions import OLDEST_VERSION, PROTOCOL_VERSION, common_version
 
 FIRMWARE_VERSION = (0, 4, 0)
-CHUNK_BYTES = 2048  # bulk payload per frame: 98 % wire efficiency, 4 KiB frame buffers
-MAX_MEASUREMENTS = 4  # RAM slots, the baseline included (4 x 96 KB of the 512 KB SRAM)
-MAX_DI_MAPS = 2
-MAX_CHANNELS = 32  # the channel mask is 32 bits wide
-REPLY_CACHE_SIZE = 16
 SHOT_PERIOD_S = 0.005  # time per averaged shot (pulse repetition), for ACQUIRE's service time
 SUPPLY_V = 5.0  # USB-powered Cmod A7
 CAPABILITY_BITS = {"on_board_di": CAP_ON_BOARD_DI, "baseline_slot": CAP_BASELINE_SLOT,
@@ -77,32 +72,6 @@ _REQUEST_TYPES = frozenset(range(MsgType.INFO, MsgType.READ_DI + 1))
 
 class NodeSetupError(ValueError):
     """A scenario the node cannot represent on the wire (too many channels, long node id)."""
-
-
-class _Refused(Exception):
-    """Internal: answer the current request with an ERROR reply."""
-
-    def __init__(self, code: ErrorCode, detail: str) -> None:
-        super().__init__(detail)
-        self.code = code
-        self.detail = detail
-
-
-@dataclass(frozen=True)
-class _Stored:
-    measurement_id: int
-    is_baseline: bool
-    channel_mask: int
-    settings: ConfigureReply  # what it was taken with
-    acquisition: physics.Acquisition
-    measurement: Measurement  # all enabled channels, full rate
-
-
-@dataclass(frozen=True)
-class _StoredDi:
-    reply: ComputeDiReply
-    grid: Grid
-    pixels: np.ndarray  # float32 [n_axial, n_angle]
 
 
 class MockNode:
@@ -146,12 +115,8 @@ class MockNode:
             self.boot_id = self._boot_rng.randrange(1, 2**32)
         self._boot_time = self.clock()
         self._seq = 0
-        self._next_measurement_id = 1
-        self._next_di_id = 1
-        self._measurements: OrderedDict[int, _Stored] = OrderedDict()
-        self._baseline_id = 0
-        self._di_maps: OrderedDict[int, _StoredDi] = OrderedDict()
-        self._cache: OrderedDict[int, tuple[int, int, bytes, list[Frame]]] = OrderedDict()
+        self._ram = NodeRam()
+        self._cache = ReplyCache()
         self._busy_until = 0.0
         self._running: tuple[int, int, int, bytes] | None = None  # the acquisition in progress
         self._stuck_busy = False
@@ -161,12 +126,7 @@ class MockNode:
 
     def power_up_settings(self) -> ConfigureReply:
         """The settings in force after a boot: the scenario's ``power_up`` keys, else its own."""
-        scn, up = self.scenario, self.scenario.power_up
-        return ConfigureReply(
-            float(np.float32(up.excitation_hz or scn.excitation.frequency_hz)), up.cycles or scn.excitation.cycles,
-            up.averaging or scn.acquisition.averaging, (1 << len(scn.rings.rx_angles)) - 1,
-            up.n_samples or scn.acquisition.n_samples,
-        )
+        return power_up_settings(self.scenario)
 
     @property
     def busy(self) -> bool:
@@ -174,7 +134,7 @@ class MockNode:
 
     def stored_codes(self, measurement_id: int) -> np.ndarray | None:
         """A copy of a stored measurement's codes [n_enabled_channels, n] (an oracle for tests)."""
-        stored = self._measurements.get(measurement_id)
+        stored = self._ram.find(measurement_id)
         return None if stored is None else stored.acquisition.codes.copy()
 
     def note_frame_error(self, crc: bool) -> None:
@@ -211,11 +171,11 @@ class MockNode:
         busy = self._busy_answer(request, version)
         if busy is not None:
             return busy
-        cached = self._cache.get(request.request_id)
-        if cached is not None and cached[:3] == (version, request.msg_type, request.payload) and not (
+        cached = self._cache.get(request, version)
+        if cached is not None and not (
             request.msg_type == MsgType.ACQUIRE and Violation.ACQUIRES_TWICE in self.violations
         ):
-            return [self._replay(f) for f in cached[3]]
+            return [self._replay(f) for f in cached]
         if request.msg_type not in _REQUEST_TYPES:
             return self._error(request, ErrorCode.UNKNOWN_COMMAND, f"0x{request.msg_type:02X} is not a request",
                                version)
@@ -235,7 +195,7 @@ class MockNode:
         try:
             replies = handler(self, message)
             frames = self._frames(request, replies, version)
-        except _Refused as refused:
+        except Refused as refused:
             frames = self._error(request, refused.code, refused.detail, version)
         except (physics.PhysicsError, MeasurementError, GridError) as exc:
             # The simulated hardware failed: answer like firmware would, keep serving.
@@ -244,10 +204,7 @@ class MockNode:
         if isinstance(message, (ConfigureRequest, AcquireRequest, ComputeDiRequest)) and (
             not refused_now or Violation.CACHES_ERRORS in self.violations
         ):
-            self._cache[request.request_id] = (version, request.msg_type, request.payload, frames)
-            self._cache.move_to_end(request.request_id)
-            while len(self._cache) > REPLY_CACHE_SIZE:
-                self._cache.popitem(last=False)
+            self._cache.put(request, version, frames)
         if isinstance(message, AcquireRequest) and not refused_now and self.scenario.firmware.busy_while_acquiring:
             self._busy_until = self.clock() + self.last_service_s
             self._running = (version, request.request_id, request.msg_type, request.payload)
@@ -320,7 +277,7 @@ class MockNode:
         return [InfoReply(
             scn.node_id, *FIRMWARE_VERSION, version, self.capabilities, self.boot_id, MAX_FRAME_BYTES,
             CHUNK_BYTES, len(rx), scn.acquisition.adc_bits, scn.acquisition.decimation, MAX_MEASUREMENTS,
-            float(scn.acquisition.fs_hz), self._max_samples(), float(scn.rings.tx_rx_distance_mm),
+            float(scn.acquisition.fs_hz), max_samples(scn, self._recorded), float(scn.rings.tx_rx_distance_mm),
             float(scn.pipe.outer_circumference_mm), float(scn.pipe.velocity_m_s), len(tx), len(rx), tx, rx,
             self.version_min, min(self.version_max, 255),
         )]
@@ -328,166 +285,68 @@ class MockNode:
     def _info_request(self, message: InfoRequest) -> list[Message]:
         return self._info(self.version_max)  # a version-1 node: INFO in its own version
 
-    def _max_samples(self) -> int:
-        """The longest record CONFIGURE accepts: the firmware's limit; a replayed record, no longer than it was simulated."""
-        if self._recorded is not None:
-            return min(self.scenario.max_samples, self._recorded.n_samples)
-        return self.scenario.max_samples
-
     def _status(self, message: StatusRequest) -> list[Message]:
-        last = next(reversed(self._measurements.values()), None)
+        last = self._ram.latest()
         idle = self._recorded.baseline.temperature_c if self._recorded else self.scenario.temperature.mean_c
         temperature = last.acquisition.temperature_c if last else idle
         return [StatusReply(
             int(self.clock() - self._boot_time), self.boot_id, float(temperature), SUPPLY_V,
-            self.crc_errors, self.framing_errors, self.rejected_requests, self._baseline_id,
-            len(self._measurements), int(self.busy),
+            self.crc_errors, self.framing_errors, self.rejected_requests, self._ram.baseline_id,
+            len(self._ram), int(self.busy),
         )]
 
     def _configure(self, message: ConfigureRequest) -> list[Message]:
-        n_rx = len(self.scenario.rings.rx_angles)
-        if not (1e3 <= message.excitation_hz <= 1e6 and math.isfinite(message.excitation_hz)):
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "excitation_hz outside 1 kHz..1 MHz")
-        if not 1 <= message.cycles <= 50:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "cycles outside 1..50")
-        averaging, n_samples, max_samples = message.averaging, message.n_samples, self._max_samples()
-        if Violation.CLAMPS_SETTINGS in self.violations:
-            averaging, n_samples = min(averaging, 10000), min(n_samples, max_samples)
-        if not 1 <= averaging <= 10000:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "averaging outside 1..10000")
-        if message.channel_mask == 0 or message.channel_mask >> n_rx:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask must select channels of 0..{n_rx - 1}")
-        if not 2 <= n_samples <= max_samples:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"n_samples outside 2..{max_samples}")
-        recorded = self._recorded.baseline if self._recorded is not None else None
-        if recorded is not None and not (math.isclose(message.excitation_hz, recorded.excitation_hz, rel_tol=1e-6)
-                                         and message.cycles == recorded.cycles):
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"this node replays full-wave records of {recorded.excitation_hz:g} Hz, "
-                                                   f"{recorded.cycles} cycles only")
-        self.config = ConfigureReply(float(np.float32(message.excitation_hz)), message.cycles, averaging,
-                                     message.channel_mask, n_samples)
+        self.config = configured(message, self.scenario, self._recorded, Violation.CLAMPS_SETTINGS in self.violations)
         return [self.config]
-
-    def _configured_scenario(self) -> NodeScenario:
-        scn, cfg = self.scenario, self.config
-        return scn.model_copy(update={
-            "excitation": scn.excitation.model_copy(update={"frequency_hz": cfg.excitation_hz, "cycles": cfg.cycles}),
-            "acquisition": scn.acquisition.model_copy(update={"averaging": cfg.averaging, "n_samples": cfg.n_samples}),
-        })
 
     def _acquire(self, message: AcquireRequest) -> list[Message]:
         if message.as_baseline and not self.capabilities & CAP_BASELINE_SLOT:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "no baseline slot (capability BASELINE_SLOT absent)")
-        scn = self._configured_scenario()
+            raise Refused(ErrorCode.BAD_ARGUMENT, "no baseline slot (capability BASELINE_SLOT absent)")
+        scn = configured_scenario(self.scenario, self.config)
         elapsed_s = self.clock() - self._epoch
-        if self._recorded is not None:
-            acquisition = acquire_recorded(scn, self._recorded, elapsed_s, self._rng)
-        else:
-            acquisition = physics.acquire(scn, elapsed_s, self._rng)
-        rows = [i for i in range(len(scn.rings.rx_angles)) if self.config.channel_mask >> i & 1]
-        full = acquisition.to_measurement(scn)
-        if full.n_rx != len(rows):  # keep only the enabled receivers, as the FPGA does
-            full = dataclasses.replace(full, traces=full.traces[rows], rx_angles_deg=full.rx_angles_deg[rows])
-            acquisition = dataclasses.replace(acquisition, codes=np.ascontiguousarray(acquisition.codes[rows]))
-        measurement_id = self._next_measurement_id
-        self._next_measurement_id += 1
-        stored = _Stored(measurement_id, bool(message.as_baseline), self.config.channel_mask, self.config,
-                         acquisition, full)
-        if message.as_baseline:
-            self._measurements.pop(self._baseline_id, None)
-            self._baseline_id = measurement_id
-        self._measurements[measurement_id] = stored
-        while len(self._measurements) > MAX_MEASUREMENTS:  # evict the oldest, never the baseline
-            oldest = next(k for k in self._measurements if k != self._baseline_id)
-            del self._measurements[oldest]
+        acquisition, full = measuring.acquire(scn, self.config.channel_mask, self._recorded, elapsed_s, self._rng)
+        stored = self._ram.store(bool(message.as_baseline), self.config, acquisition, full)
         self.last_service_s = self.config.averaging * SHOT_PERIOD_S
         cfg = self.config
-        return [AcquireReply(measurement_id, int(stored.is_baseline), float(acquisition.temperature_c),
+        return [AcquireReply(stored.measurement_id, int(stored.is_baseline), float(acquisition.temperature_c),
                              cfg.channel_mask, cfg.n_samples, int(self.clock() - self._boot_time), self.boot_id,
                              cfg.excitation_hz, cfg.cycles, cfg.averaging, float(acquisition.fs_hz))]
 
-    def _stored(self, measurement_id: int) -> _Stored:
-        stored = self._measurements.get(measurement_id)
-        if stored is None:
-            raise _Refused(ErrorCode.NO_SUCH_MEASUREMENT, f"measurement {measurement_id} is not in RAM")
-        return stored
-
     def _read_traces(self, message: ReadTracesRequest) -> list[Message]:
-        stored = self._stored(message.measurement_id)
-        n = stored.acquisition.codes.shape[1]
-        if message.channel_mask == 0 or message.channel_mask & ~stored.channel_mask:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"channel_mask 0x{message.channel_mask:X} not in 0x{stored.channel_mask:X}")
-        count = message.count or n - message.start
-        if message.start >= n or count < 1 or message.start + count > n:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"samples {message.start}+{count} outside 0..{n}")
-        stored_channels = [i for i in range(MAX_CHANNELS) if stored.channel_mask >> i & 1]
-        rows = [stored_channels.index(i) for i in stored_channels if message.channel_mask >> i & 1]
-        codes = stored.acquisition.codes[rows, message.start : message.start + count]
-        data = np.ascontiguousarray(codes, dtype="<i2").tobytes()
-        meta = TraceMeta(
-            self.boot_id, stored.measurement_id, int(stored.is_baseline), message.channel_mask, message.start,
-            count, float(stored.acquisition.fs_hz), float(stored.acquisition.t0_s),
-            float(stored.acquisition.volts_per_code), float(stored.acquisition.temperature_c),
-            self.scenario.acquisition.adc_bits, len(data), CHUNK_BYTES, n_chunks_for(len(data), CHUNK_BYTES),
-            crc32c(data), stored.settings.excitation_hz, stored.settings.cycles, stored.settings.averaging,
-            stored.channel_mask, n,
-        )
-        return [meta, *self._chunks(data, message.chunks)]
+        stored = self._ram.measurement(message.measurement_id)
+        return trace_reply(message, stored, self.boot_id, self.scenario.acquisition.adc_bits,
+                           bool(self.capabilities & CAP_CHUNK_RETRANSMIT), self.violations)
 
-    def _chunks(self, data: bytes, wanted: tuple[int, ...]) -> list[BulkChunk]:
-        pieces = split_chunks(data, CHUNK_BYTES)
-        if wanted and not self.capabilities & CAP_CHUNK_RETRANSMIT:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "no chunk lists (capability CHUNK_RETRANSMIT absent)")
-        if Violation.IGNORES_CHUNK_LIST in self.violations:
-            wanted = ()
-        indices = sorted(set(wanted)) if wanted else range(len(pieces))
-        if any(i >= len(pieces) for i in indices):
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"chunk index beyond {len(pieces)} chunks")
-        stated = len(pieces) + (Violation.MISSTATES_CHUNK_COUNT in self.violations)
-        return [BulkChunk(i, stated, pieces[i]) for i in indices]
-
-    def _decimated(self, stored: _Stored, factor: int) -> Measurement:
+    def _decimated(self, stored: StoredMeasurement, factor: int) -> Measurement:
         method: Decimation = "boxcar" if Violation.DI_BOXCAR_DECIMATION in self.violations else "subsample"
         return decimated(stored.measurement, stored.acquisition.codes, stored.acquisition.volts_per_code, factor,
                          method)
 
     def _compute_di(self, message: ComputeDiRequest) -> list[Message]:
-        baseline_id = message.baseline_id or self._baseline_id
+        baseline_id = message.baseline_id or self._ram.baseline_id
         if baseline_id == 0:
-            raise _Refused(ErrorCode.NO_BASELINE, "no baseline stored")
-        baseline, current = self._stored(baseline_id), self._stored(message.current_id)
+            raise Refused(ErrorCode.NO_BASELINE, "no baseline stored")
+        baseline, current = self._ram.measurement(baseline_id), self._ram.measurement(message.current_id)
         factor = message.decimation or self.scenario.acquisition.decimation
         if not 1 <= factor <= 100:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, "decimation outside 1..100")
+            raise Refused(ErrorCode.BAD_ARGUMENT, "decimation outside 1..100")
         try:
             grid = requested_grid(message, self.scenario.rings.tx_rx_distance_mm)
             pixels, peak = onboard_map(self._decimated(baseline, factor), self._decimated(current, factor), grid)
         except GridRefused as exc:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, str(exc)) from exc
+            raise Refused(ErrorCode.BAD_ARGUMENT, str(exc)) from exc
         except BaselineMismatch as exc:
-            raise _Refused(ErrorCode.BAD_ARGUMENT, f"baseline mismatch: {exc}") from exc
+            raise Refused(ErrorCode.BAD_ARGUMENT, f"baseline mismatch: {exc}") from exc
         reply = ComputeDiReply(
-            self._next_di_id, current.measurement_id, baseline.measurement_id, factor, grid.axial_count,
+            self._ram.next_di_id, current.measurement_id, baseline.measurement_id, factor, grid.axial_count,
             grid.angle_count, float(pixels[peak]), float(grid.axial_mm[peak[0]]), float(grid.angle_deg[peak[1]]),
         )
-        self._next_di_id += 1
-        self._di_maps[reply.di_id] = _StoredDi(reply, grid, pixels)
-        while len(self._di_maps) > MAX_DI_MAPS:
-            self._di_maps.popitem(last=False)
+        self._ram.store_di(reply, grid, pixels)
         return [reply]
 
     def _read_di(self, message: ReadDiRequest) -> list[Message]:
-        stored = self._di_maps.get(message.di_id)
-        if stored is None:
-            raise _Refused(ErrorCode.NO_SUCH_DI, f"DI map {message.di_id} is not in RAM")
-        data = np.ascontiguousarray(stored.pixels, dtype="<f4").tobytes()
-        r, g = stored.reply, stored.grid
-        meta = DiMeta(
-            self.boot_id, r.di_id, r.current_id, r.baseline_id, r.decimation, g.axial_count, g.angle_count,
-            g.axial_start_mm, g.axial_step_mm, g.angle_start_deg, g.angle_step_deg, len(data), CHUNK_BYTES,
-            n_chunks_for(len(data), CHUNK_BYTES), crc32c(data),
-        )
-        return [meta, *self._chunks(data, message.chunks)]
+        stored = self._ram.di_map(message.di_id)
+        return di_reply(message, stored, self.boot_id, bool(self.capabilities & CAP_CHUNK_RETRANSMIT), self.violations)
 
     _HANDLERS: ClassVar[dict[type, Callable]] = {
         InfoRequest: _info_request,

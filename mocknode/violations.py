@@ -1,5 +1,5 @@
 """How the mock node breaks a requirement on purpose (``FaultSpec.violations``): the few
-departures that need more than skipping a check in ``node.py``."""
+departures that need more than skipping a check in ``node.py`` or the modules of its commands."""
 from __future__ import annotations
 
 import struct

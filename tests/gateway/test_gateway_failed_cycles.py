@@ -16,7 +16,8 @@ import pytest
 from db.database import open_database
 from db.models import NodeRow
 from gateway.config import NodeSettings
-from gateway.node_client import NodeClient, NodeTimeout, TransferError
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeTimeout, TransferError
 from gateway.watchdog import Heartbeats
 from gateway.worker import NodeWorker
 from mocknode.scenario import default_scenario

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.node_client import NodeClient, NodeError, NodeTimeout, PortVanished
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeError, NodeTimeout
 from imaging.grid import Grid
 from mocknode.faults import FaultSpec
 from mocknode.scenario import NodeScenario, default_scenario
 from mocknode.server import MockNodeServer
-from nodelink.transport import SerialTransport
+from nodelink.transport import PortVanished, SerialTransport
 from protocol.framing import FLAG_CACHED, Frame, FrameDecoder, encode_frame
 from protocol.messages import AcquireReply, AcquireRequest, ErrorCode, decode_message
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gateway.node_client import CapabilityMissing, NodeClient, NodeTimeout
+from gateway.node_client import NodeClient
+from gateway.node_errors import CapabilityMissing, NodeTimeout
 from mocknode.faults import FaultSpec
 from mocknode.scenario import FirmwareSpec, NodeScenario, default_scenario
 from mocknode.server import MockNodeServer
@@ -72,12 +73,12 @@ def test_commands_of_an_absent_capability_are_refused_before_anything_is_sent():
     with MockNodeServer([scenario(firmware={"capabilities": ["chunk_retransmit"]})]) as server:
         with client_for(server.urls["node-01"]) as client:
             current = client.acquire(baseline=False)
-            sent_before = client._seq
+            sent_before = client._channel.seq
             for call in (lambda: client.compute_di(current.measurement_id), lambda: client.read_di(1),
                          lambda: client.acquire(baseline=True)):
                 with pytest.raises(CapabilityMissing):
                     call()
-            assert client._seq == sent_before
+            assert client._channel.seq == sent_before
 
 
 def test_lost_chunks_from_a_node_without_chunk_retransmission_are_recovered_by_whole_rereads():

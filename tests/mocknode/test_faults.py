@@ -6,17 +6,12 @@ import time
 import numpy as np
 import pytest
 
-from gateway.node_client import (
-    NodeClient,
-    NodeError,
-    NodeTimeout,
-    PortVanished,
-    ProtocolMismatch,
-    TransferError,
-)
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeError, NodeTimeout, ProtocolMismatch, TransferError
 from mocknode.faults import FaultSpec
 from mocknode.scenario import NodeScenario, default_scenario
 from mocknode.server import MockNodeServer
+from nodelink.transport import PortVanished
 from protocol.messages import ErrorCode
 from tests.support.clocks import ManualClock
 

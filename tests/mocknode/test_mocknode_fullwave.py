@@ -13,7 +13,8 @@ from fullwave.cases import own_cases
 from fullwave.cli import generate
 from gateway.config import GeometryOverride
 from gateway.geometry import effective_geometry
-from gateway.node_client import NodeClient, NodeError
+from gateway.node_client import NodeClient
+from gateway.node_errors import NodeError
 from imaging.formats import load_measurement
 from imaging.pipeline import AssessSettings, assess
 from imaging.timing import surface_distance_mm

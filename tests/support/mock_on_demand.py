@@ -68,5 +68,5 @@ def acquire_on_demand(scn: NodeScenario, elapsed_s: float, rng: np.random.Genera
 
 
 if __name__ == "__main__":
-    physics.acquire = acquire_on_demand  # mocknode/node.py calls physics.acquire(...)
+    physics.acquire = acquire_on_demand  # mocknode/measuring.py calls physics.acquire(...)
     typer.run(mock_node)
