@@ -26,7 +26,7 @@ from gateway.config import NodeSettings
 from gateway.geometry import effective_geometry
 from gateway.node_client import NodeClient
 from gateway.node_errors import NodeClientError, NodeRebooted, ProtocolMismatch
-from gateway.node_transfers import TraceTransfer
+from gateway.node_transfers import TraceTransfer, channels_of
 from gateway.record_settings import (
     RecordSettings,
     SettingsNotStated,
@@ -201,7 +201,7 @@ def _record_settings(conn: Connection, reply: AcquireReply, transfer: TraceTrans
             raise ProtocolMismatch(str(exc)) from exc
         meta = (transfer.excitation_hz, transfer.cycles, transfer.averaging, transfer.record_n_samples)
         said = (reply.excitation_hz, reply.cycles, reply.averaging, reply.n_samples)
-        if meta != said or transfer.record_channels != tuple(i for i in range(32) if reply.channel_mask >> i & 1):
+        if meta != said or transfer.record_channels != channels_of(reply.channel_mask):
             raise ProtocolMismatch(f"TRACE_META of measurement {reply.measurement_id} states {meta}, "
                                    f"its ACQUIRE_REPLY {said}")
         return settings
@@ -243,7 +243,7 @@ def acquire(
                                                                or conn.slot_measurement_id is None)))
     acquired_at = now()
     reply = client.acquire(baseline=fill_slot)
-    channels = [i for i in range(32) if reply.channel_mask >> i & 1]  # the record's, whatever was configured
+    channels = list(channels_of(reply.channel_mask))  # the record's, whatever was configured
     transfer = client.read_traces(reply.measurement_id, channels=channels)
     if transfer.boot_id != reply.boot_id:
         raise NodeRebooted(f"boot id {reply.boot_id:#010x} at ACQUIRE, {transfer.boot_id:#010x} at READ_TRACES")
