@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy import fft as sp_fft
@@ -70,6 +71,25 @@ def analytic_matched(traces: np.ndarray, burst: np.ndarray) -> np.ndarray:
     if n_fft % 2 == 0:
         full[..., n_fft // 2] = spec[..., n_fft // 2]  # Nyquist once
     return sp_fft.ifft(full, n_fft, axis=-1, overwrite_x=True)[..., :n]
+
+
+@lru_cache(maxsize=8)
+def analytic_noise_correlation(fs_hz: float, excitation_hz: float, cycles: int) -> np.ndarray:
+    """Re of the correlation, normalised to 1 at lag 0, of ``analytic_matched``'s output for white noise, at lags
+    0, 1, ... samples (zero beyond: the burst's autocorrelation is two bursts long). Read-only.
+
+    Two samples of the matched feature ``d`` apart share noise in this proportion; a statistic adding
+    several nearby samples of one receiver has variance sum_ab w_a w_b r(|k_a - k_b|), not sum_a w_a^2.
+    """
+    burst = hann_burst(fs_hz, excitation_hz, cycles)
+    size = burst.size
+    impulse = np.zeros(4 * size)
+    impulse[2 * size] = 1.0
+    response = analytic_matched(impulse, burst)
+    corr = np.array([np.vdot(response[:response.size - d], response[d:]) for d in range(2 * size)])
+    out = np.ascontiguousarray((corr / corr[0]).real)
+    out.setflags(write=False)
+    return out
 
 
 def envelope(x: np.ndarray, *, axis: int = -1) -> np.ndarray:

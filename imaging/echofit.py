@@ -12,7 +12,10 @@ each lag (the columns are shifted, possibly cut, copies of two fixed shapes), ga
 each column's own samples for the right-hand side and the echoes, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
 a full-length vector and solves receiver by receiver: the test oracle. ``fit_smooth_echoes``
 shares each path's amplitude across the receivers, optionally as a circular harmonic of their
-bearing (its oracle: ``literal_fit_smooth_echoes``).
+bearing (its oracle: ``literal_fit_smooth_echoes``). A model whose coherence groups hold several
+paths (Tx elements, imaging/paths.py) is fitted with one amplitude per group instead
+(``group_waves``: each group's paths synthesised together); the oracles take the same route
+only for the plane-wave model.
 """
 from __future__ import annotations
 
@@ -20,8 +23,9 @@ import math
 from functools import lru_cache
 
 import numpy as np
+from scipy import fft as sp_fft
 
-from imaging.paths import scalar_paths, stacked_paths
+from imaging.paths import coherence_groups, scalar_paths, stacked_paths
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
@@ -96,18 +100,75 @@ def _normal_equations(
     return gram, rhs, padded, window
 
 
+def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int) -> np.ndarray:
+    """Each position's echo along each coherence group, as it reaches each receiver: [n_rx, n_pos, n_groups, 2, n]
+    (burst and quadrature twin), the group's paths added with their weights and cut to the record.
+
+    For a model whose groups hold several paths (a Tx ring modelled element by element,
+    imaging/paths.py): its incident terms arrive close together and share one amplitude.
+    Built as impulse trains convolved with the two burst shapes (one FFT each).
+    """
+    shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
+    size = shapes.shape[1]
+    n_rx, n_pos, n_groups = scene.n_rx, len(positions), coherence_groups(scene.model)
+    z = np.array([p[0] for p in positions], dtype=np.float64)
+    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
+    groups, length, weight = stacked_paths(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])  # [P, m, pos]
+    k = np.floor((length / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
+    keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
+    width = n + size
+    impulses = np.zeros((n_rx, n_pos, n_groups, width))
+    p_idx, m_idx, pos_idx = np.nonzero(keep)
+    np.add.at(impulses, (m_idx, pos_idx, groups[p_idx], k[keep] + size), weight[keep])
+    n_fft = sp_fft.next_fast_len(width + size, real=True)
+    spec = sp_fft.rfft(impulses, n_fft, axis=-1)[..., None, :] * sp_fft.rfft(shapes, n_fft, axis=-1)
+    return sp_fft.irfft(spec, n_fft, axis=-1)[..., size:size + n]
+
+
+def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
+                     shared: bool) -> list[np.ndarray]:
+    """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
+    path, on ``group_waves``: the fit for a model with Tx elements."""
+    n_rx, n = residual.shape
+    waves = group_waves(scene, positions, n)  # [m, pos, g, 2, n]
+    n_pos = len(positions)
+    columns = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
+    gram = np.einsum("man,mbn->mab", columns, columns, optimize=True)
+    rhs = np.einsum("man,mn->ma", columns, residual, optimize=True)
+    if not shared:
+        coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
+    else:
+        rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
+        bearing = np.deg2rad(rel)  # [m, pos]
+        basis = [np.ones_like(bearing)]
+        for order in range(1, orders + 1):
+            basis += [np.cos(order * bearing), np.sin(order * bearing)]
+        per_column = columns.shape[1] // n_pos
+        wc = np.repeat(np.stack(basis, axis=-1), per_column, axis=1)  # [m, a, K]
+        n_basis = wc.shape[-1]
+        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(columns.shape[1] * n_basis, -1)
+        big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
+        unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
+        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(columns.shape[1], n_basis))
+    fitted = (coef[:, :, None] * columns).reshape(n_rx, n_pos, -1, n).sum(axis=2)
+    return [np.ascontiguousarray(fitted[:, p]) for p in range(n_pos)]
+
+
 def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:
     """Joint least-squares fit, on each of the scene's healthy receivers, of point scatterers' echoes at
     ``positions`` (axial_mm, angle_deg), along the scene's modelled paths.
 
     Returns one fitted echo array [n_rx, n] per position (their sum is the full fit). Fitting
     the scatterers together keeps one from absorbing another's echoes where they overlap.
+    With Tx elements, one amplitude per receiver and coherence group (``group_waves``).
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
     mask = scene.rx_mask
     if not positions:
         return []
+    if scene.model.elements:
+        return _fit_group_waves(residual, scene, positions, 0, shared=False)
     shapes, table = _partial_products(scene.fs_hz, scene.excitation_hz, scene.cycles)
     size = shapes.shape[1]
     n_pos = len(positions)
@@ -189,6 +250,8 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     n_rx, n = residual.shape
     if not positions:
         return []
+    if scene.model.elements:
+        return _fit_group_waves(residual, scene, positions, orders, shared=True)
     shapes, table = _partial_products(scene.fs_hz, scene.excitation_hz, scene.cycles)
     size = shapes.shape[1]
     n_pos = len(positions)

@@ -16,6 +16,12 @@ the two signatures used (complex64 and float32 features) when this module is imp
 path with the literal oracle's scalar math (hypot as the square root of a sum of squares,
 within an ulp) (imaging/multipath.py
 ``local_multipath_pixels`` falls back to its vectorised numpy form without numba).
+
+3. ``coherent_energy``: per coherence group, the noise variance of the sum of a receiver's
+weighted samples when several of them fall close together (an element-by-element incident wave,
+imaging/paths.py): sum over pairs of paths in the group of w_a w_b r(|k_a - k_b|), r the feature's
+noise correlation (imaging/arrivals.py ``analytic_noise_correlation``); paths outside the record
+(k = n) count nothing. Compiled with numba, numpy fallback; tests hold them equal.
 """
 from __future__ import annotations
 
@@ -140,3 +146,75 @@ def _compile_local():
 
 
 local_sums_compiled = _compile_local()
+
+
+def coherent_energy_numpy(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, correlation: np.ndarray,
+                          n_groups: int, n_samples: int) -> np.ndarray:
+    """[n_groups, n_pixels]: sum over pairs (a, b) of paths of one group of w_a w_b r(|k_a - k_b|) (module docstring).
+
+    ``idx`` [P, n_pixels] sample of each path (``n_samples``: outside the record), ``w`` [P, n_pixels]."""
+    out = np.zeros((n_groups, idx.shape[1]))
+    span = correlation.size
+    inside = idx < n_samples
+    wv = np.where(inside, w.astype(np.float64), 0.0)
+    for g in range(n_groups):
+        members = np.flatnonzero(groups == g)
+        for i, a in enumerate(members):
+            out[g] += wv[a] * wv[a]
+            for b in members[i + 1:]:
+                lag = np.abs(idx[a].astype(np.int64) - idx[b])
+                out[g] += 2.0 * wv[a] * wv[b] * np.where(lag < span, correlation[np.minimum(lag, span - 1)], 0.0)
+    return out
+
+
+def _coherent_energy_loops(starts, idx, w, correlation, n_samples, out):  # pragma: no cover - numba
+    # Paths sorted by group: group g's are rows starts[g]:starts[g + 1].
+    n_pix = idx.shape[1]
+    span = correlation.shape[0]
+    for g in range(starts.shape[0] - 1):
+        for a in range(starts[g], starts[g + 1]):
+            for x in range(n_pix):
+                ka = idx[a, x]
+                if ka >= n_samples:
+                    continue
+                wa = np.float64(w[a, x])
+                out[g, x] += wa * wa
+                for b in range(a + 1, starts[g + 1]):
+                    kb = idx[b, x]
+                    if kb >= n_samples:
+                        continue
+                    lag = ka - kb if ka > kb else kb - ka
+                    if lag < span:
+                        out[g, x] += 2.0 * wa * np.float64(w[b, x]) * correlation[lag]
+
+
+def _compile_energy():
+    numba = numba_module()
+    if numba is None:
+        return None
+    t = numba.types
+    signatures = [t.void(t.Array(t.int64, 1, "C", readonly=True), t.Array(t.int32, 2, "C", readonly=True),
+                         t.Array(weight, 2, "C", readonly=True), t.Array(t.float64, 1, "C", readonly=True),
+                         t.int64, t.float64[:, ::1]) for weight in (t.float32, t.float64)]
+    return njit(numba, signatures, _coherent_energy_loops)
+
+
+coherent_energy_compiled = _compile_energy()
+
+
+def coherent_energy(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, correlation: np.ndarray,
+                    n_groups: int, n_samples: int) -> np.ndarray:
+    """``coherent_energy_numpy``'s result, by the compiled kernel when available (dtypes: ``groups`` int64,
+    ``idx`` int32, ``w`` float32 (a gather table's) or float64, ``correlation`` float64)."""
+    if coherent_energy_compiled is None:
+        return coherent_energy_numpy(groups, idx, w, correlation, n_groups, n_samples)
+    out = np.zeros((n_groups, idx.shape[1]))
+    order = np.argsort(groups, kind="stable")
+    starts = np.searchsorted(groups[order], np.arange(n_groups + 1)).astype(np.int64)
+    weights = w[order] if w.dtype in (np.float32, np.float64) else w[order].astype(np.float64)
+    ro = [np.ascontiguousarray(a) for a in (starts, idx[order].astype(np.int32), weights,
+                                            correlation.astype(np.float64))]
+    for a in ro:
+        a.setflags(write=False)
+    coherent_energy_compiled(*ro, int(n_samples), out)
+    return out

@@ -21,6 +21,11 @@ fixed threshold. With ``normalise="amplitude"`` the map is the least-squares sca
 strength instead: DI sqrt(G) / sqrt(sum of all w^2) (coherent) or the weighted sum / sum w^(2q).
 Samples outside the record contribute nothing.
 
+A sparse Tx ring's element-by-element incident wave (imaging/paths.py) puts several paths of one
+group on one receiver, close together in time; their noise is then correlated, and the group's
+sum of squared weights becomes sum_ab w_a w_b r(|k_a - k_b|) per receiver (imaging/gather.py
+``coherent_energy``), so that noise alone still scores the same as with a plane wave.
+
 Fast path: for each receiver the (sample index, weight) of every path and pixel is computed
 once per geometry and cached; a uniform ring whose angles fall on the grid shares one table,
 rolled in angle per receiver.
@@ -33,13 +38,13 @@ from functools import lru_cache
 
 import numpy as np
 
-from imaging.arrivals import end_reflection_coefficients, reference_amplitude
+from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, reference_amplitude
 from imaging.dimap import DIMap, check_compatible
 from imaging.features import residual_feature
-from imaging.gather import accumulate, local_sums_compiled
+from imaging.gather import accumulate, coherent_energy, local_sums_compiled
 from imaging.grid import Grid
 from imaging.measurement import Measurement
-from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, stacked_paths
+from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, sparse_ring, stacked_paths
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
@@ -98,14 +103,19 @@ def build_table(
     fs_hz: float,
     n_samples: int,
     power: int,
+    excitation_hz: float = 0.0,
+    cycles: int = 0,
 ) -> GatherTable:
-    """The gather table of a receiver at ``rx_angle_deg`` (uncached). Paths never inside the record are dropped."""
+    """The gather table of a receiver at ``rx_angle_deg`` (uncached). Paths never inside the record are dropped.
+
+    ``excitation_hz`` and ``cycles`` (the feature's noise correlation) matter only to a model
+    with Tx elements (module docstring)."""
     c_mm_s = velocity_m_s * MM_PER_M
     rel = grid.angle_deg[None, :] - rx_angle_deg
     n_pix = grid.shape[0] * grid.shape[1]
     groups, idxs, ws = [], [], []
     weight_sq = np.zeros((coherence_groups(model), n_pix))
-    for family, length, weight in scatter_paths(model, grid.axial_mm[:, None], rel):
+    for family, length, weight in scatter_paths(model, grid.axial_mm[:, None], rel, rx_angle_deg):
         k = np.floor((length.ravel() / c_mm_s - t0_s) * fs_hz + 0.5)
         inside = (k >= 0) & (k < n_samples)
         if not inside.any():
@@ -121,6 +131,11 @@ def build_table(
         np.stack(ws) if ws else np.zeros((0, n_pix), np.float32),
         weight_sq,
     )
+    if model.elements and idxs:
+        correlation = analytic_noise_correlation(fs_hz, excitation_hz, cycles)
+        table = GatherTable(table.groups, table.idx, table.w,
+                            coherent_energy(table.groups, table.idx, table.w, correlation, weight_sq.shape[0],
+                                            n_samples))
     for arr in (table.groups, table.idx, table.w, table.weight_sq):
         arr.setflags(write=False)
     return table
@@ -129,13 +144,26 @@ def build_table(
 _cached_table = lru_cache(maxsize=32)(build_table)
 
 
-def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, int]]:
-    """(table angle, roll in pixels) per receiver: on-grid receivers of a full ring share receiver 0's table."""
+def _rolls_onto_itself(model: PathModel, shift_deg: float) -> bool:
+    """Does turning the pipe by ``shift_deg`` leave the model's Tx elements where they were (always, for a plane wave)?"""
+    if not model.elements:
+        return True
+    circ = model.circumference_mm
+    arcs = np.mod(np.array(model.tx_arcs_mm), circ)
+    moved = np.mod(arcs + shift_deg * circ / 360.0, circ)
+    gap = np.abs(moved[:, None] - arcs[None, :])
+    return bool(np.all(np.min(np.minimum(gap, circ - gap), axis=1) < 1e-6))
+
+
+def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray, model: PathModel) -> list[tuple[float, int]]:
+    """(table angle, roll in pixels) per receiver: on-grid receivers of a full ring share receiver 0's table
+    (with Tx elements: only where the turn maps the elements onto themselves)."""
     ref = float(rx_angles_deg[0])
     plan = []
     for angle in rx_angles_deg:
         steps = (float(angle) - ref) / grid.angle_step_deg
-        if grid.wraps_in_angle and abs(steps - round(steps)) < 1e-9:
+        if (grid.wraps_in_angle and abs(steps - round(steps)) < 1e-9
+                and _rolls_onto_itself(model, float(angle) - ref)):
             plan.append((ref, round(steps) % grid.angle_count))
         else:
             plan.append((float(angle), 0))
@@ -144,14 +172,15 @@ def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray) -> list[tuple[float, i
 
 @lru_cache(maxsize=32)
 def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
-                     t0_s: float, fs_hz: float, n_samples: int, power: int,
+                     t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
                      mask: tuple[bool, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle],
     and its ``_reciprocal``."""
     total = np.zeros((coherence_groups(model),) + grid.shape)
     for (angle, roll), healthy in zip(plan, mask, strict=True):
         if healthy:
-            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power)
+            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
+                                  cycles)
             total += np.roll(table.weight_sq.reshape(total.shape), roll, axis=2)
     inverse = _reciprocal(total)
     total.setflags(write=False)
@@ -164,6 +193,13 @@ def _check_arguments(feature: np.ndarray, scene: Scene, normalise: str) -> None:
         raise MultipathError(f"{scene.n_rx} receiver angles for feature rows of shape {feature.shape}")
     if normalise not in NORMALISATIONS:
         raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
+
+
+def _geometry(scene: Scene, n_samples: int) -> tuple:
+    """What a gather table depends on besides the grid and the receiver angle (the table cache's key)."""
+    elements = scene.model.elements
+    return (scene.model, scene.velocity_m_s, scene.t0_s, scene.fs_hz, n_samples, scene.power,
+            scene.excitation_hz if elements else 0.0, scene.cycles if elements else 0)
 
 
 def multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr") -> np.ndarray:
@@ -180,10 +216,10 @@ def multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr
     grid, mask = scene.grid, scene.rx_mask
     coherent = np.iscomplexobj(feature)
     n_rx, n = feature.shape
-    geometry = (scene.model, scene.velocity_m_s, scene.t0_s, scene.fs_hz, n, scene.power)
+    geometry = _geometry(scene, n)
     padded = np.zeros((n_rx, n + 1), dtype=np.complex64 if coherent else np.float32)
     padded[:, :n] = feature
-    plan = tuple(_receiver_plan(grid, scene.rx_angles_deg))
+    plan = tuple(_receiver_plan(grid, scene.rx_angles_deg, scene.model))
     total = np.zeros((coherence_groups(scene.model),) + grid.shape, dtype=padded.dtype)
     for m, (angle, roll) in enumerate(plan):
         if mask[m]:
@@ -211,6 +247,8 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
     groups = np.zeros((n_groups,) + grid.shape, dtype=np.complex128 if coherent else np.float64)
     weight_sq = np.zeros((n_groups,) + grid.shape)
     c_mm_s = scene.velocity_m_s * MM_PER_M
+    if rows.size and model.elements:
+        return _combine(*_local_element_sums(feature, scene, rows), normalise)
     if rows.size and compiled and local_sums_compiled is not None:
         families = model.families()
         offset, sign, image, factor = (np.array([getattr(f, name) for f in families], dtype=np.float64)
@@ -233,6 +271,28 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
     return _combine(groups, weight_sq, normalise)
 
 
+def _local_element_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``local_multipath_pixels``' group sums and energies for a model with Tx elements (numpy: a group holds
+    several paths of one receiver, whose noise is correlated)."""
+    grid, model, power = scene.grid, scene.model, scene.power
+    n = feature.shape[1]
+    c_mm_s = scene.velocity_m_s * MM_PER_M
+    n_groups = coherence_groups(model)
+    rel = grid.angle_deg[None, None, :] - scene.rx_angles_deg[rows, None, None]
+    family, length, weight = stacked_paths(model, grid.axial_mm[None, :, None], rel,
+                                           scene.rx_angles_deg[rows, None, None])  # [P, n_rx, n_ax, n_an]
+    k = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
+    inside = (k >= 0) & (k < n)
+    w = np.where(inside, weight**power, 0.0)
+    samples = feature[rows[None, :, None, None], np.where(inside, k, 0).astype(np.intp)]
+    groups = np.zeros((n_groups,) + grid.shape, dtype=np.result_type(feature.dtype, np.float64))
+    np.add.at(groups, family, np.sum(w * samples, axis=1))
+    idx = np.where(inside, k, n).astype(np.int32).reshape(family.size, -1)
+    correlation = analytic_noise_correlation(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    energy = coherent_energy(family, idx, w.reshape(family.size, -1), correlation, n_groups, n)
+    return groups, energy.reshape((n_groups, rows.size) + grid.shape).sum(axis=1)
+
+
 def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr") -> np.ndarray:
     """The same map pixel by pixel, receiver by receiver, path by path: the test oracle."""
     feature = np.asarray(feature)
@@ -241,6 +301,7 @@ def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: st
     n_rx, n = feature.shape
     c_mm_s = scene.velocity_m_s * MM_PER_M
     n_fam = coherence_groups(model)
+    correlation = analytic_noise_correlation(scene.fs_hz, scene.excitation_hz, scene.cycles)
     out = np.zeros(grid.shape)
     for i, z in enumerate(grid.axial_mm):
         for j, theta in enumerate(grid.angle_deg):
@@ -249,12 +310,20 @@ def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: st
             for m in range(n_rx):
                 if not scene.rx_mask[m]:
                     continue
-                for family, length, w in scalar_paths(model, float(z), float(theta) - float(scene.rx_angles_deg[m])):
+                rx = float(scene.rx_angles_deg[m])
+                taken: list[list[tuple[int, float]]] = [[] for _ in range(n_fam)]
+                for family, length, w in scalar_paths(model, float(z), float(theta) - rx, rx):
                     k = math.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
                     if not 0 <= k < n:
                         continue
                     sums[family] += w**power * complex(feature[m, k])
-                    weight_sq[family] += w ** (2 * power)
+                    taken[family].append((k, w**power))
+                for family, members in enumerate(taken):
+                    for ka, wa in members:  # correlated noise of nearby samples (only Tx elements put them there)
+                        for kb, wb in members:
+                            lag = abs(ka - kb)
+                            weight_sq[family] += wa * wb * (1.0 if lag == 0 else
+                                                            float(correlation[lag]) if lag < correlation.size else 0.0)
             total_sq = sum(weight_sq)
             if total_sq <= 0:
                 continue
@@ -274,13 +343,16 @@ def path_model_for(
     model_ends: bool = True,
     polarization: bool = True,
     wraps: int = 2,
+    elements: bool = True,
 ) -> PathModel:
     """The path model of a node from its (defect-free) baseline.
 
     Wrap length: the mid-wall circumference pi (OD - wall) when ``wall_mm`` is known, else the
     record's circumference. Pipe ends are modelled when the record gives the pipe length and
     the Tx ring position, with reflection coefficients measured from the baseline's own end
-    echoes (imaging/arrivals.py), so an absorbing end drops its paths by itself.
+    echoes (imaging/arrivals.py), so an absorbing end drops its paths by itself. A Tx ring sparse
+    enough to launch more than circumferential order 0 in the excitation's band (imaging/paths.py
+    ``sparse_ring``) is modelled element by element (``elements`` False: as a plane wave anyway).
     """
     circumference = baseline.circumference_mm
     if wall_mm is not None:
@@ -288,8 +360,13 @@ def path_model_for(
             raise MultipathError(f"wall_mm must be in (0, OD/2), got {wall_mm}")
         circumference -= math.pi * wall_mm
     wavelength = baseline.velocity_m_s * MM_PER_M / baseline.excitation_hz
+    tx_arcs: tuple[float, ...] = ()
+    if elements and sparse_ring(baseline.tx_angles_deg.size, circumference, baseline.velocity_m_s,
+                                baseline.excitation_hz, baseline.cycles):
+        tx_arcs = tuple(float(a) * circumference / 360.0 for a in baseline.tx_angles_deg)
     if not model_ends or baseline.pipe_length_mm is None or baseline.tx_axial_mm is None:
-        return PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization, wraps=wraps)
+        return PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization, wraps=wraps,
+                         tx_arcs_mm=tx_arcs)
     # Quantised so every baseline of a node gives the same model, hence the same cached tables.
     near, far = (round(r / REFLECTION_QUANTUM) * REFLECTION_QUANTUM for r in end_reflection_coefficients(baseline))
     return PathModel(
@@ -302,6 +379,7 @@ def path_model_for(
         far_reflection=far,
         polarization=polarization,
         wraps=wraps,
+        tx_arcs_mm=tx_arcs,
     )
 
 

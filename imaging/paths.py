@@ -15,6 +15,17 @@ strength: the ends' reflection coefficients, 2-D spreading sqrt(lambda / r) (sof
 half a wavelength), and, for torsional (circumferentially polarised) receivers, |cos| of the
 arrival direction from the pipe axis: an SH wave arriving at angle phi moves the wall
 circumferentially by cos(phi).
+
+A sparse Tx ring (``PathModel.tx_arcs_mm`` set): the plane wave above is only the ring's
+circumferential order 0. N elements launch orders 0, N, 2N, ...; order N propagates once the
+excitation band reaches its cut-off N c / C (8 elements on the paper's pipe: 69.6 kHz, inside
+a 75 kHz burst's band) and, near cut-off, carries more of the incident field than order 0
+(its excitation grows as k / k_z). The incident wave is then modelled as what it is in the
+wall: a cylindrical wave from every element and from its images one, two, ... circumferences
+round (``tx_images`` either way), each with the same spreading and polarisation as a scattered
+path and the spacing C / N over lambda as its weight (the elements' sum is then the plane wave
+of amplitude 1 far from the ring, by stationary phase). Every path of a family and way round
+then has one such incident term per element image, all in the same coherence group.
 """
 from __future__ import annotations
 
@@ -51,6 +62,9 @@ class PathModel:
     are the pipe ends' axial positions from the Tx ring (None: unknown, not modelled).
     ``wraps`` 1 keeps only the shorter way round, 2 both. Paths whose end-reflection factor is
     below ``min_factor`` are dropped (e.g. every end path of a pipe with absorbing ends).
+    ``tx_arcs_mm``: the Tx elements' positions round the wrap circumference (mm from angle 0)
+    when the incident wave is modelled element by element (module docstring), with
+    ``tx_images`` images of each either way; empty: the axisymmetric plane wave.
     """
 
     tx_rx_distance_mm: float
@@ -63,12 +77,18 @@ class PathModel:
     polarization: bool = True
     wraps: int = 2
     min_factor: float = 0.05
+    tx_arcs_mm: tuple[float, ...] = ()
+    tx_images: int = 3
 
     def __post_init__(self) -> None:
         if not (self.tx_rx_distance_mm > 0 and self.circumference_mm > 0 and self.wavelength_mm > 0):
             raise PathModelError("distances and wavelength must be positive")
         if self.wraps not in (1, 2):
             raise PathModelError(f"wraps must be 1 or 2, got {self.wraps}")
+        if self.tx_images < 0:
+            raise PathModelError(f"tx_images must be >= 0, got {self.tx_images}")
+        if not all(math.isfinite(a) for a in self.tx_arcs_mm):
+            raise PathModelError("tx_arcs_mm must be finite")
         if self.near_end_mm is not None and self.near_end_mm > 0:
             raise PathModelError("the near end lies behind the Tx ring (near_end_mm <= 0)")
         if self.far_end_mm is not None and self.far_end_mm < self.tx_rx_distance_mm:
@@ -92,6 +112,45 @@ class PathModel:
                 if factor >= self.min_factor:
                     out.append(PathFamily(f"{in_name}>{out_name}", offset, sign, image, factor))
         return tuple(out)
+
+
+    @property
+    def elements(self) -> bool:
+        """True when the incident wave is modelled element by element (a sparse Tx ring)."""
+        return bool(self.tx_arcs_mm)
+
+
+def ring_order_cutoff_hz(n_elements: int, circumference_mm: float, velocity_m_s: float) -> float:
+    """Cut-off of a ring's first circumferential order above 0, N c / C: below it only order 0 propagates."""
+    return n_elements * velocity_m_s * 1000.0 / circumference_mm
+
+
+def sparse_ring(n_elements: int, circumference_mm: float, velocity_m_s: float, excitation_hz: float,
+                cycles: int) -> bool:
+    """Does a ring of ``n_elements`` launch more than order 0 into the wall? True when order N's
+    cut-off lies below the upper edge of the burst's main lobe, f (1 + 2 / cycles) (a Hann burst)."""
+    if n_elements < 1:
+        return False
+    return ring_order_cutoff_hz(n_elements, circumference_mm, velocity_m_s) < excitation_hz * (1.0 + 2.0 / cycles)
+
+
+def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndarray,
+                   family: PathFamily) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(length_mm, weight) of each incident term of ``family`` at pixels (axial, arc round the pipe from angle 0):
+    the plane wave (one term of weight 1), or one cylindrical wave per Tx element image."""
+    zeta = family.in_offset_mm + family.in_sign * np.asarray(axial_mm, dtype=np.float64)
+    if not model.elements:
+        return [(np.abs(zeta), np.ones(np.shape(zeta)))]
+    circ, lam = model.circumference_mm, model.wavelength_mm
+    scale = circ / len(model.tx_arcs_mm) / lam
+    terms = []
+    for arc in model.tx_arcs_mm:
+        base = signed_arc_mm((np.asarray(pixel_arc_mm, dtype=np.float64) - arc) * (360.0 / circ), circ)
+        for image in range(-model.tx_images, model.tx_images + 1):
+            s = base + image * circ
+            r = np.sqrt(np.square(zeta) + np.square(s))
+            terms.append((r, path_weight(scale, zeta, r, model)))
+    return terms
 
 
 def coherence_groups(model: PathModel) -> int:
@@ -129,34 +188,47 @@ def path_weight(factor: float | np.ndarray, dz_mm: np.ndarray, r_mm: np.ndarray,
 
 
 def scatter_paths(
-    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray = 0.0
 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """(coherence group, length_mm, weight) of every modelled path, broadcast over axial_mm x rel_angle_deg.
 
-    ``rel_angle_deg`` is the pixel angle minus the receiver angle. The group is
-    ``family_index * wraps + wrap`` (see ``coherence_groups``).
+    ``rel_angle_deg`` is the pixel angle minus the receiver angle ``rx_angle_deg`` (which only
+    an element-by-element incident wave needs). The group is ``family_index * wraps + wrap``
+    (see ``coherence_groups``); with Tx elements a group holds one path per element image.
     """
     z = np.asarray(axial_mm, dtype=np.float64)
     arc = signed_arc_mm(rel_angle_deg, model.circumference_mm)
+    pixel_arc = (np.asarray(rel_angle_deg, dtype=np.float64) + rx_angle_deg) * (model.circumference_mm / 360.0)
     paths = []
     for f, fam in enumerate(model.families()):
-        incident = np.abs(fam.in_offset_mm + fam.in_sign * z)
+        incident = incident_terms(model, z, pixel_arc, fam)
         dz = fam.rx_image_mm - z
         for wrap, leg in enumerate(wrap_offsets_mm(arc, model.circumference_mm, model.wraps)):
             r = np.hypot(dz, leg)
-            length, weight = np.broadcast_arrays(incident + r, path_weight(fam.factor, dz, r, model))
-            paths.append((f * model.wraps + wrap, length, weight))
+            out = path_weight(fam.factor, dz, r, model)
+            for in_length, in_weight in incident:
+                length, weight = np.broadcast_arrays(in_length + r, out if not model.elements else in_weight * out)
+                paths.append((f * model.wraps + wrap, length, weight))
     return paths
 
 
 def stacked_paths(
-    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``scatter_paths`` as three arrays: groups [P] (int64), length_mm and weight [P, *broadcast shape].
 
     The same arithmetic, done once for all families and wraps (few large array operations
-    instead of many small ones: what a small grid needs).
+    instead of many small ones: what a small grid needs). With Tx elements: ``scatter_paths``
+    stacked (a group then repeats, one path per element image).
     """
+    if model.elements:
+        paths = scatter_paths(model, axial_mm, rel_angle_deg, rx_angle_deg)
+        shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
+        if not paths:
+            return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
+        return (np.array([g for g, _, _ in paths], dtype=np.int64),
+                np.stack([np.broadcast_to(length, shape) for _, length, _ in paths]),
+                np.stack([np.broadcast_to(weight, shape) for _, _, weight in paths]))
     families = model.families()
     if not families:
         shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg))
@@ -179,22 +251,45 @@ def stacked_paths(
     return groups, length.reshape((n,) + length.shape[2:]), weight.reshape((n,) + weight.shape[2:])
 
 
-def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float) -> list[tuple[int, float, float]]:
-    """The same paths for one pixel, written out with scalar math (the literal oracle's model)."""
-    lam, circ = model.wavelength_mm, model.circumference_mm
-    diff = (rel_angle_deg + 180.0) % 360.0 - 180.0
+def _scalar_arc(angle_deg: float, circ: float) -> float:
+    diff = (angle_deg + 180.0) % 360.0 - 180.0
     if diff == -180.0:
         diff = 180.0
-    arc = diff * circ / 360.0
+    return diff * circ / 360.0
+
+
+def _scalar_weight(factor: float, axial: float, r: float, model: PathModel) -> float:
+    lam = model.wavelength_mm
+    w = factor * math.sqrt(lam / max(r, 0.5 * lam))
+    if model.polarization and r > 0:
+        w *= abs(axial) / r
+    return w
+
+
+def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float,
+                 rx_angle_deg: float = 0.0) -> list[tuple[int, float, float]]:
+    """The same paths for one pixel, written out with scalar math (the literal oracle's model)."""
+    circ = model.circumference_mm
+    arc = _scalar_arc(rel_angle_deg, circ)
     legs = [arc] if model.wraps == 1 else [arc, arc - (1.0 if arc >= 0 else -1.0) * circ]
+    pixel_deg = rel_angle_deg + rx_angle_deg
     out = []
     for f, fam in enumerate(model.families()):
-        incident = abs(fam.in_offset_mm + fam.in_sign * z_mm)
+        zeta = fam.in_offset_mm + fam.in_sign * z_mm
+        if model.elements:
+            scale = circ / len(model.tx_arcs_mm) / model.wavelength_mm
+            incident = []
+            for tx_arc in model.tx_arcs_mm:
+                base = _scalar_arc(pixel_deg - tx_arc * 360.0 / circ, circ)
+                for image in range(-model.tx_images, model.tx_images + 1):
+                    r_in = math.hypot(zeta, base + image * circ)
+                    incident.append((r_in, _scalar_weight(scale, zeta, r_in, model)))
+        else:
+            incident = [(abs(zeta), 1.0)]
         dz = fam.rx_image_mm - z_mm
         for wrap, leg in enumerate(legs):
             r = math.hypot(dz, leg)
-            w = fam.factor * math.sqrt(lam / max(r, 0.5 * lam))
-            if model.polarization and r > 0:
-                w *= abs(dz) / r
-            out.append((f * model.wraps + wrap, incident + r, w))
+            w = _scalar_weight(fam.factor, dz, r, model)
+            for in_length, in_weight in incident:
+                out.append((f * model.wraps + wrap, in_length + r, w * in_weight if model.elements else w))
     return out

@@ -1,4 +1,6 @@
 """The all-paths map: the fast gather equals the literal per-pixel sum, and it localizes through noise."""
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -30,6 +32,9 @@ def random_problem(draw):
         polarization=draw(st.booleans()),
         wraps=draw(st.sampled_from([1, 2])),
     )
+    if draw(st.booleans()):  # a Tx ring modelled element by element (several paths per group and receiver)
+        arcs = draw(st.lists(st.floats(0, model.circumference_mm), min_size=1, max_size=3))
+        model = dataclasses.replace(model, tx_arcs_mm=tuple(arcs), tx_images=draw(st.integers(0, 1)))
     uniform = draw(st.booleans())
     if uniform:  # a full ring on the grid: exercises the shared, rolled table
         step = draw(st.sampled_from([10.0, 15.0, 30.0]))
