@@ -11,6 +11,10 @@ grid (cached tables), one local 1 mm x 1 deg peak refinement, and a whole
 (one baseline), and with a library of 24 baselines (the gateway's default library size).
 Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). Numba kernels are
 used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback.
+
+Part 3 (an 8-transducer ring at 75 kHz, reflecting ends: the incident wave modelled element by
+element, imaging/paths.py): the first map (gather tables built), the map, and assess() with a
+mass and without; no target (the 40 ms is the 16-ring's), printed to show the cost.
 """
 from __future__ import annotations
 
@@ -35,7 +39,14 @@ from imaging.multipath import local_multipath_pixels, path_model_for, residual_m
 from imaging.pipeline import AssessSettings, assess, default_grid  # noqa: E402
 from imaging.scene import Scene  # noqa: E402
 from mocknode.physics import Acquisition, quantise_volts, simulate_volts  # noqa: E402
-from mocknode.scenario import AcquisitionSpec, DefectSpec, NodeScenario, PipeSpec  # noqa: E402
+from mocknode.scenario import (  # noqa: E402
+    AcquisitionSpec,
+    DefectSpec,
+    ExcitationSpec,
+    NodeScenario,
+    PipeSpec,
+    RingSpec,
+)
 
 WALL_MM = 4.0
 
@@ -54,6 +65,23 @@ def inputs(n_rx: int = 16, n_samples: int = 6000, seed: int = 1) -> tuple[Measur
         return Measurement(traces.astype(np.float32), 10e6, 0.0, angles, angles, 400.0, 114.6 * np.pi)
 
     return meas(base), meas(cur)
+
+
+def eight_ring_records(seed: int = 3) -> tuple[Measurement, Measurement, Measurement]:
+    """(baseline at 20 degC, a 10 kg mass at 150 mm 45 deg at 20.5 degC, no defect at 20.5 degC): 8 transducers,
+    75 kHz, reflecting ends, noise."""
+    rng = np.random.default_rng(seed)
+
+    def record(defects, temperature_c):
+        scn = NodeScenario(node_id="bench8", pipe=PipeSpec(ends="reflecting", wall_mm=WALL_MM),
+                           rings=RingSpec(n_transducers=8), excitation=ExcitationSpec(frequency_hz=75e3),
+                           defects=defects)
+        volts = simulate_volts(scn, elapsed_s=0.0, temperature_c=temperature_c, rng=rng)
+        codes, vpc = quantise_volts(volts, scn.acquisition.adc_bits, scn.acquisition.adc_full_scale_v)
+        return Acquisition(codes, vpc, scn.acquisition.fs_hz, scn.acquisition.t0_s, temperature_c, 0.0).to_measurement(scn)
+
+    mass = [DefectSpec(kind="mass", axial_mm=150.0, angle_deg=45.0)]
+    return record([], 20.0), record(mass, 20.5), record([], 20.5)
 
 
 def mock_records(seed: int = 2) -> tuple[Measurement, Measurement, Measurement, list[Measurement]]:
@@ -133,16 +161,44 @@ def multipath(args) -> None:
                                            for d in result.defects))
 
 
+def eight_ring(args) -> None:
+    base, mass, quiet = eight_ring_records()
+    settings = AssessSettings(wall_mm=WALL_MM)
+    grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
+    model = path_model_for(base, wall_mm=WALL_MM)
+    scene = Scene.of(base, model, grid, reference_amplitude_v=reference_amplitude(base))
+    residual = base.traces.astype(np.float64) - mass.traces.astype(np.float64)
+    first = time.perf_counter()
+    residual_map(residual, scene)
+    cold_ms = (time.perf_counter() - first) * 1e3
+    timings = {
+        f"multipath map {grid.shape[0]} x {grid.shape[1]} (feature + gather)": lambda: residual_map(residual, scene),
+        "assess(), record with a mass": lambda: assess(mass, [base], settings),
+        "assess(), defect-free record": lambda: assess(quiet, [base], settings),
+    }
+    for fn in timings.values():
+        fn()
+    repeats = max(3, args.assess_repeats // 4)
+    print(f"\n8-transducer ring, 75 kHz, reflecting ends (mock node): Tx modelled by elements: {model.elements}, "
+          f"{len(model.tx_arcs_mm)} elements x {2 * model.tx_images + 1} images")
+    print(f"  first map incl. building the gather tables: {cold_ms:8.1f} ms")
+    for name, fn in timings.items():
+        print(f"  {name:45s}: {median_s(fn, repeats) * 1e3:8.2f} ms (median of {repeats})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--literal-repeats", type=int, default=3)
     parser.add_argument("--fast-repeats", type=int, default=50)
     parser.add_argument("--assess-repeats", type=int, default=31)
     parser.add_argument("--skip-paper", action="store_true", help="only the all-paths part")
+    parser.add_argument("--skip-eight", action="store_true", help="leave out the 8-transducer ring")
     args = parser.parse_args()
     if not args.skip_paper:
         paper(args)
     multipath(args)
+    if not args.skip_eight:
+        eight_ring(args)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 
+NEGLIGIBLE_WEIGHT = 1e-12  # an incident term this weak (a pixel on the Tx ring, off every element) counts nothing
+
+
 class PathModelError(ValueError):
     """A path model's geometry is inconsistent (e.g. an end between the rings)."""
 
@@ -149,7 +152,8 @@ def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndar
         for image in range(-model.tx_images, model.tx_images + 1):
             s = base + image * circ
             r = np.sqrt(np.square(zeta) + np.square(s))
-            terms.append((r, path_weight(scale, zeta, r, model)))
+            w = path_weight(scale, zeta, r, model)
+            terms.append((r, np.where(w < NEGLIGIBLE_WEIGHT, 0.0, w)))
     return terms
 
 
@@ -283,7 +287,8 @@ def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float,
                 base = _scalar_arc(pixel_deg - tx_arc * 360.0 / circ, circ)
                 for image in range(-model.tx_images, model.tx_images + 1):
                     r_in = math.hypot(zeta, base + image * circ)
-                    incident.append((r_in, _scalar_weight(scale, zeta, r_in, model)))
+                    w_in = _scalar_weight(scale, zeta, r_in, model)
+                    incident.append((r_in, 0.0 if w_in < NEGLIGIBLE_WEIGHT else w_in))
         else:
             incident = [(abs(zeta), 1.0)]
         dz = fam.rx_image_mm - z_mm
