@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
 NEGLIGIBLE_WEIGHT = 1e-12  # an incident term this weak (a pixel on the Tx ring, off every element) counts nothing
 
 
