@@ -45,11 +45,13 @@ from imaging.gather import accumulate, coherent_energy, local_sums_compiled
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, sparse_ring, stacked_paths
+from imaging.ring_fit import fit_sparse_ring
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
+WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
 
 
 class MultipathError(ValueError):
@@ -352,7 +354,10 @@ def path_model_for(
     the Tx ring position, with reflection coefficients measured from the baseline's own end
     echoes (imaging/arrivals.py), so an absorbing end drops its paths by itself. A Tx ring sparse
     enough to launch more than circumferential order 0 in the excitation's band (imaging/paths.py
-    ``sparse_ring``) is modelled element by element (``elements`` False: as a plane wave anyway).
+    ``sparse_ring``) is modelled element by element (``elements`` False: as a plane wave anyway);
+    its end coefficients, and without ``wall_mm`` its wrap length, are fitted to the baseline
+    (imaging/ring_fit.py). Every fitted value is quantised, so that every baseline of a node
+    gives the same model and shares its cached gather tables.
     """
     circumference = baseline.circumference_mm
     if wall_mm is not None:
@@ -361,20 +366,36 @@ def path_model_for(
         circumference -= math.pi * wall_mm
     wavelength = baseline.velocity_m_s * MM_PER_M / baseline.excitation_hz
     tx_arcs: tuple[float, ...] = ()
+    near_end: float | None = None
+    far_end: float | None = None
+    if model_ends and baseline.pipe_length_mm is not None and baseline.tx_axial_mm is not None:
+        near_end, far_end = -baseline.tx_axial_mm, baseline.pipe_length_mm - baseline.tx_axial_mm
+    coefficients: tuple[float, float] | None = None
     if elements and sparse_ring(baseline.tx_angles_deg.size, circumference, baseline.velocity_m_s,
                                 baseline.excitation_hz, baseline.cycles):
+        # Order N arrives with the end echoes and its cut-off hangs on the wrap length: fit the ring's own
+        # incident model to the baseline (imaging/ring_fit.py) for both, the wrap only when no wall is given.
         tx_arcs = tuple(float(a) * circumference / 360.0 for a in baseline.tx_angles_deg)
-    if not model_ends or baseline.pipe_length_mm is None or baseline.tx_axial_mm is None:
+        plain = PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization,
+                          tx_arcs_mm=tx_arcs)
+        ring = fit_sparse_ring(baseline, plain, near_end, far_end, fit_wrap=wall_mm is None)
+        if wall_mm is None:
+            circumference = round(ring.circumference_mm / WRAP_QUANTUM_MM) * WRAP_QUANTUM_MM
+        tx_arcs = tuple(float(a) * circumference / 360.0 for a in baseline.tx_angles_deg)
+        coefficients = (ring.near, ring.far)
+    if near_end is None or far_end is None:
         return PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization, wraps=wraps,
                          tx_arcs_mm=tx_arcs)
+    if coefficients is None:
+        coefficients = end_reflection_coefficients(baseline)
     # Quantised so every baseline of a node gives the same model, hence the same cached tables.
-    near, far = (round(r / REFLECTION_QUANTUM) * REFLECTION_QUANTUM for r in end_reflection_coefficients(baseline))
+    near, far = (round(r / REFLECTION_QUANTUM) * REFLECTION_QUANTUM for r in coefficients)
     return PathModel(
         baseline.tx_rx_distance_mm,
         circumference,
         wavelength,
-        near_end_mm=-baseline.tx_axial_mm,
-        far_end_mm=baseline.pipe_length_mm - baseline.tx_axial_mm,
+        near_end_mm=near_end,
+        far_end_mm=far_end,
         near_reflection=near,
         far_reflection=far,
         polarization=polarization,

@@ -11,7 +11,7 @@ from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging import gather
 from imaging.analysis import analyze
-from imaging.arrivals import analytic_noise_correlation, hann_burst, reference_amplitude
+from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, hann_burst, reference_amplitude
 from imaging.echofit import fit_echoes, fit_smooth_echoes, group_waves
 from imaging.features import residual_feature
 from imaging.grid import Grid
@@ -172,3 +172,26 @@ def test_a_near_rigid_mass_seen_by_an_eight_ring_is_found_on_full_wave_physics(a
     plane = multipath_pixels(residual_feature(residual, plane_scene), plane_scene)
     i, j = np.unravel_index(np.argmax(plane), plane.shape)
     assert surface_distance_mm(grid.axial_mm[i], grid.angle_deg[j], axial_mm, angle_deg, MID_WALL_MM) > 50.0
+
+
+def _small_eight_ring(ends: str) -> SimulationSpec:
+    return SimulationSpec(pipe=PipeModel(length_mm=600.0, ends=ends),  # type: ignore[arg-type]
+                          rings=RingLayout(tx_axial_mm=150.0, n_transducers=8, tx_rx_distance_mm=300.0),
+                          excitation_hz=75e3, cell_mm=2.0, n_samples=4000)
+
+
+@pytest.mark.parametrize("ends", ["absorbing", "reflecting"])
+def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(ends):
+    # The record says pi x OD = 360 mm; the FDTD's wave travels the mid-wall, 347.5 mm. Order 8's cut-off
+    # hangs on it, and order 8's slow arrival lands on the end echoes' window.
+    baseline = simulate(_small_eight_ring(ends))
+    assert baseline.circumference_mm == pytest.approx(360.03, abs=0.01) and baseline.wall_mm is None
+    model = path_model_for(baseline)
+    assert model.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
+    if ends == "absorbing":
+        assert model.near_reflection <= 0.2 and model.far_reflection <= 0.2
+        assert end_reflection_coefficients(baseline)[0] > 0.3  # what the envelope at the echo time reads
+    else:
+        assert model.near_reflection >= 0.5 and model.far_reflection >= 0.5
+    given = path_model_for(baseline, wall_mm=4.0)  # a wall given: its mid-wall is used, not fitted
+    assert given.circumference_mm == pytest.approx(MID_WALL_MM, abs=1e-6)
