@@ -15,7 +15,12 @@ band, so its slow, dispersive arrival depends steeply on the circumference C the
 a node reports pi x OD, the wave travels the mid-wall pi (OD - wall), 3.5 % less on the paper's
 pipe, which moves the 8-ring's cut-off from 69.6 to 72.1 kHz. Without a wall thickness
 (``wall_mm``), ``fit_sparse_ring`` takes the C in [0.85, 1.0] x the record's circumference whose
-model explains most of the record (grid of 0.5 % steps, then a parabola through the best three).
+model explains most of the record (grid of 0.5 % steps, then a parabola through the best three),
+if it stands out: it must leave at most DECISIVE (0.7) of the scan's median unexplained, else the
+record's circumference is kept. Measured (2026-12-03): the SH full-wave records' minimum sits
+at the true wrap with 0.48-0.64 of the median (dev 360 mm, own 347.4); the own in-plane model's
+8-ring record (tilted patches: S0 and mode conversion too) has a flat, many-minima curve (best
+0.76 of the median, at 0.905 x 360 mm, the true 0.965 not even a local minimum): kept at 360.
 """
 from __future__ import annotations
 
@@ -57,6 +62,7 @@ class RingFit(NamedTuple):
 
 
 WRAP_SCAN = np.linspace(0.85, 1.0, 31)  # fractions of the record's circumference tried as the wrap length
+DECISIVE = 0.7  # ... and the best must leave at most this fraction of the scan's median unexplained
 
 
 def _fit(m: Measurement, model: PathModel, near_end_mm: float | None, far_end_mm: float | None) -> RingFit:
@@ -115,7 +121,10 @@ def fit_sparse_ring(m: Measurement, model: PathModel, near_end_mm: float | None,
         if not fit_wrap:
             return _fit(m, model, near_end_mm, far_end_mm)
         scan = [_fit(m, _with_wrap(model, m, f * m.circumference_mm), near_end_mm, far_end_mm) for f in WRAP_SCAN]
-        best = int(np.argmin([f.unexplained for f in scan]))
+        left = np.array([f.unexplained for f in scan])
+        best = int(np.argmin(left))
+        if left[best] > DECISIVE * float(np.median(left)):  # no wrap length stands out: keep the record's
+            return _fit(m, model, near_end_mm, far_end_mm)
         if 0 < best < len(scan) - 1:  # a parabola through the best three
             y0, y1, y2 = (scan[best + k].unexplained for k in (-1, 0, 1))
             curvature = y0 - 2.0 * y1 + y2

@@ -195,3 +195,16 @@ def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(en
         assert model.near_reflection >= 0.5 and model.far_reflection >= 0.5
     given = path_model_for(baseline, wall_mm=4.0)  # a wall given: its mid-wall is used, not fitted
     assert given.circumference_mm == pytest.approx(MID_WALL_MM, abs=1e-6)
+
+
+def test_a_wrap_length_is_fitted_only_where_one_stands_out():
+    # The mock node's ray physics launches a plane wave from any ring: no order 8 to measure the wrap by.
+    from mocknode.physics import acquire
+    from mocknode.scenario import ExcitationSpec, NodeScenario, RingSpec
+
+    scn = NodeScenario(node_id="eight", rings=RingSpec(n_transducers=8), excitation=ExcitationSpec(frequency_hz=75e3))
+    record = acquire(scn, 0.0, np.random.default_rng(1)).to_measurement(scn)
+    assert record.wall_mm is None
+    model = path_model_for(record)
+    assert model.elements
+    assert model.circumference_mm == pytest.approx(record.circumference_mm, abs=0.5)  # kept, not fitted
