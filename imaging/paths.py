@@ -225,13 +225,7 @@ def stacked_paths(
     stacked (a group then repeats, one path per element image).
     """
     if model.elements:
-        paths = scatter_paths(model, axial_mm, rel_angle_deg, rx_angle_deg)
-        shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
-        if not paths:
-            return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
-        return (np.array([g for g, _, _ in paths], dtype=np.int64),
-                np.stack([np.broadcast_to(length, shape) for _, length, _ in paths]),
-                np.stack([np.broadcast_to(weight, shape) for _, _, weight in paths]))
+        return _stacked_element_paths(model, axial_mm, rel_angle_deg, rx_angle_deg)
     families = model.families()
     if not families:
         shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg))
@@ -267,6 +261,41 @@ def _scalar_weight(factor: float, axial: float, r: float, model: PathModel) -> f
     if model.polarization and r > 0:
         w *= abs(axial) / r
     return w
+
+
+def _stacked_element_paths(
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``stacked_paths`` of a model with Tx elements: families x wraps x element images, in ``scatter_paths``' order."""
+    families = model.families()
+    shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
+    if not families:
+        return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
+    circ, lam = model.circumference_mm, model.wavelength_mm
+    z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
+    rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
+    pixel_arc = (rel + rx_angle_deg) * (circ / 360.0)
+    arc = signed_arc_mm(rel, circ)
+    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(arc, circ, model.wraps)))  # [W, ...]
+    images = np.arange(-model.tx_images, model.tx_images + 1) * circ
+    offsets = np.array([[tx, im] for tx in model.tx_arcs_mm for im in images])  # [E, 2]: element, image shift
+    extra = (1,) * len(shape)
+    base = signed_arc_mm((pixel_arc[None] - offsets[:, 0].reshape((-1,) + extra)) * (360.0 / circ), circ)
+    s = base + offsets[:, 1].reshape((-1,) + extra)  # [E, ...]
+    offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
+                                   for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
+    zeta = offset + sign * z[None]  # [F, ...]
+    r_in = np.sqrt(np.square(zeta[:, None]) + np.square(s[None]))  # [F, E, ...]
+    w_in = path_weight(circ / len(model.tx_arcs_mm) / lam, zeta[:, None], r_in, model)
+    w_in = np.where(w_in < NEGLIGIBLE_WEIGHT, 0.0, w_in)
+    dz = image - z[None]  # [F, ...]
+    r_out = np.hypot(dz[:, None], legs[None])  # [F, W, ...]
+    w_out = path_weight(factor[:, None], dz[:, None], r_out, model)
+    length = r_in[:, None] + r_out[:, :, None]  # [F, W, E, ...]
+    weight = w_in[:, None] * w_out[:, :, None]
+    n_f, n_w, n_e = len(families), model.wraps, offsets.shape[0]
+    groups = np.repeat(np.arange(n_f * n_w, dtype=np.int64), n_e)
+    return groups, length.reshape((-1,) + shape), weight.reshape((-1,) + shape)
 
 
 def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float,
