@@ -18,8 +18,8 @@ circumferentially by cos(phi).
 
 A sparse Tx ring (``PathModel.tx_arcs_mm`` set): the plane wave above is only the ring's
 circumferential order 0. N elements launch orders 0, N, 2N, ...; order N propagates once the
-excitation band reaches its cut-off N c / C (8 elements on the paper's pipe: 69.6 kHz, inside
-a 75 kHz burst's band) and, near cut-off, carries more of the incident field than order 0
+excitation band reaches its cut-off N c / C (8 elements on the paper's pipe: 72.1 kHz on its
+347.5 mm mid-wall, 69.6 kHz on a 360 mm one, inside a 75 kHz burst's band) and, near cut-off, carries more of the incident field than order 0
 (its excitation grows as k / k_z). The incident wave is then modelled as what it is in the
 wall: a cylindrical wave from every element and from its images one, two, ... circumferences
 round (``tx_images`` either way), each with the same spreading and polarisation as a scattered
@@ -114,7 +114,6 @@ class PathModel:
                 if factor >= self.min_factor:
                     out.append(PathFamily(f"{in_name}>{out_name}", offset, sign, image, factor))
         return tuple(out)
-
 
     @property
     def elements(self) -> bool:
@@ -221,8 +220,8 @@ def stacked_paths(
     """``scatter_paths`` as three arrays: groups [P] (int64), length_mm and weight [P, *broadcast shape].
 
     The same arithmetic, done once for all families and wraps (few large array operations
-    instead of many small ones: what a small grid needs). With Tx elements: ``scatter_paths``
-    stacked (a group then repeats, one path per element image).
+    instead of many small ones: what a small grid needs). With Tx elements the same paths in
+    the same order, families x wraps x element images (a group then repeats).
     """
     if model.elements:
         return _stacked_element_paths(model, axial_mm, rel_angle_deg, rx_angle_deg)
