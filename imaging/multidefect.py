@@ -59,6 +59,8 @@ FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on th
 EDGE_MM = 2.0  # a later peak this close to an end of the imaged span is a boundary maximum, not a located one
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
+PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
+#                    (1.2 removes most spurious defects but loses weak second notches: docs/imaging.md)
 
 
 class MultiDefectError(ValueError):
@@ -192,7 +194,7 @@ class _Search:
         unknowns (2 per path, against 4 per path and found defect), so a tie goes to the pattern."""
         explained = float(np.sum((self.original - sum(with_item))**2))
         patterned = float(np.sum((self.original - sum(self.fits(found, orders=PATTERN_ORDERS)))**2))
-        return explained < patterned
+        return explained * PATTERN_MARGIN < patterned
 
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
         runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)
