@@ -191,6 +191,8 @@ def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(en
     if ends == "absorbing":
         assert model.near_reflection <= 0.2 and model.far_reflection <= 0.2
         assert end_reflection_coefficients(baseline)[0] > 0.3  # what the envelope at the echo time reads
+        no_ends = path_model_for(dataclasses.replace(baseline, pipe_length_mm=None))  # the direct wave alone
+        assert no_ends.near_end_mm is None and no_ends.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
     else:
         assert model.near_reflection >= 0.5 and model.far_reflection >= 0.5
     given = path_model_for(baseline, wall_mm=4.0)  # a wall given: its mid-wall is used, not fitted
