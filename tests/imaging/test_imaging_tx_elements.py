@@ -210,3 +210,29 @@ def test_a_wrap_length_is_fitted_only_where_one_stands_out():
     model = path_model_for(record)
     assert model.elements
     assert model.circumference_mm == pytest.approx(record.circumference_mm, abs=0.5)  # kept, not fitted
+
+
+def test_gather_tables_are_kept_by_bytes_not_by_count(monkeypatch):
+    import cachetools
+
+    import imaging.multipath as multipath
+
+    grid = Grid(100.0, 20.0, 4, 0.0, 15.0, 24)
+    scene = _scene(_ring_model(8, 75e3, tx_images=1), grid)  # a full ring: one table, rolled, for all receivers
+    feature = np.random.default_rng(2).standard_normal((8, 3000)) + 0j
+    table_bytes = multipath.build_table(grid, 0.0, scene.model, 3130.0, 0.0, FS_HZ, 3000, 1, 75e3, 5).nbytes
+    expected = literal_multipath_pixels(feature, scene)
+
+    def budget(max_bytes: int) -> cachetools.LRUCache:
+        cache = cachetools.LRUCache(maxsize=max_bytes, getsizeof=lambda table: table.nbytes)
+        monkeypatch.setattr(multipath, "_cached_table", cachetools.cached(cache)(multipath.build_table))
+        return cache
+
+    room_for_one = budget(table_bytes)
+    np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=1e-4)
+    assert room_for_one.currsize == table_bytes and len(room_for_one) == 1
+    multipath_pixels(feature, _scene(_ring_model(8, 75e3, tx_images=0), grid))  # another geometry: room is made
+    assert len(room_for_one) == 1 and room_for_one.currsize < table_bytes
+    too_small = budget(table_bytes // 2)  # a table larger than the whole budget is used, not kept
+    np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=1e-4)
+    assert len(too_small) == 0
