@@ -54,6 +54,11 @@ from imaging.timing import MM_PER_M
 NORMALISATIONS = ("snr", "amplitude")
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
 WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
+# A sparse ring is modelled element by element only where its baseline shows it: the element model
+# must leave at most this fraction of what a plane wave leaves unexplained (imaging/ring_fit.py).
+# Measured (2026-12-03): SH full-wave 8-ring baselines 0.33-0.64; the mock node's 2.5-13.9 (its
+# physics launches a plane wave); the own in-plane model's 2.2 (tilted patches: order 8 hardly there).
+ELEMENTS_EVIDENCE = 0.8
 
 
 class MultipathError(ValueError):
@@ -365,9 +370,10 @@ def path_model_for(
     the Tx ring position, with reflection coefficients measured from the baseline's own end
     echoes (imaging/arrivals.py), so an absorbing end drops its paths by itself. A Tx ring sparse
     enough to launch more than circumferential order 0 in the excitation's band (imaging/paths.py
-    ``sparse_ring``) is modelled element by element (``elements`` False: as a plane wave anyway);
-    its end coefficients, and without ``wall_mm`` its wrap length, are fitted to the baseline
-    (imaging/ring_fit.py). Every fitted value is quantised, so that every baseline of a node
+    ``sparse_ring``) is modelled element by element when its baseline shows it (the element model
+    explains the baseline clearly better than a plane wave, ELEMENTS_EVIDENCE; ``elements`` False:
+    as a plane wave anyway); its end coefficients, and without ``wall_mm`` its wrap length, are
+    then fitted to the baseline (imaging/ring_fit.py). Every fitted value is quantised, so that every baseline of a node
     gives the same model and shares its cached gather tables.
     """
     circumference = baseline.circumference_mm
@@ -390,10 +396,13 @@ def path_model_for(
         plain = PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization,
                           tx_arcs_mm=tx_arcs)
         ring = fit_sparse_ring(baseline, plain, near_end, far_end, fit_wrap=wall_mm is None)
-        if wall_mm is None:
-            circumference = round(ring.circumference_mm / WRAP_QUANTUM_MM) * WRAP_QUANTUM_MM
-        tx_arcs = tuple(float(a) * circumference / 360.0 for a in baseline.tx_angles_deg)
-        coefficients = (ring.near, ring.far)
+        if ring.unexplained <= ELEMENTS_EVIDENCE * ring.plane_unexplained:
+            if wall_mm is None:
+                circumference = round(ring.circumference_mm / WRAP_QUANTUM_MM) * WRAP_QUANTUM_MM
+            tx_arcs = tuple(float(a) * circumference / 360.0 for a in baseline.tx_angles_deg)
+            coefficients = (ring.near, ring.far)
+        else:  # the baseline shows no order-N arrival (a plane wave explains it better): model one
+            tx_arcs = ()
     if near_end is None or far_end is None:
         return PathModel(baseline.tx_rx_distance_mm, circumference, wavelength, polarization=polarization, wraps=wraps,
                          tx_arcs_mm=tx_arcs)

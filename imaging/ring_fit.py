@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -59,6 +60,7 @@ class RingFit(NamedTuple):
     near: float
     far: float
     unexplained: float
+    plane_unexplained: float = math.nan  # the same fit with an axisymmetric plane wave from the ring
 
 
 WRAP_SCAN = np.linspace(0.85, 1.0, 31)  # fractions of the record's circumference tried as the wrap length
@@ -118,6 +120,10 @@ def fit_sparse_ring(m: Measurement, model: PathModel, near_end_mm: float | None,
            far_end_mm, fit_wrap, m.fs_hz, m.t0_s, m.velocity_m_s, m.excitation_hz, m.cycles)
 
     def compute() -> RingFit:
+        plane = _fit(m, dataclasses.replace(model, tx_arcs_mm=()), near_end_mm, far_end_mm).unexplained
+        return _elements(plane)._replace(plane_unexplained=plane)
+
+    def _elements(plane: float) -> RingFit:
         if not fit_wrap:
             return _fit(m, model, near_end_mm, far_end_mm)
         scan = [_fit(m, _with_wrap(model, m, f * m.circumference_mm), near_end_mm, far_end_mm) for f in WRAP_SCAN]

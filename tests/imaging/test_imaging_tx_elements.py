@@ -199,17 +199,18 @@ def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(en
     assert given.circumference_mm == pytest.approx(MID_WALL_MM, abs=1e-6)
 
 
-def test_a_wrap_length_is_fitted_only_where_one_stands_out():
-    # The mock node's ray physics launches a plane wave from any ring: no order 8 to measure the wrap by.
+def test_a_sparse_ring_is_modelled_by_its_elements_only_where_its_baseline_shows_them():
+    # The mock node's ray physics launches a plane wave from any ring: no order 8 in its records.
     from mocknode.physics import acquire
     from mocknode.scenario import ExcitationSpec, NodeScenario, RingSpec
 
     scn = NodeScenario(node_id="eight", rings=RingSpec(n_transducers=8), excitation=ExcitationSpec(frequency_hz=75e3))
-    record = acquire(scn, 0.0, np.random.default_rng(1)).to_measurement(scn)
-    assert record.wall_mm is None
-    model = path_model_for(record)
-    assert model.elements
-    assert model.circumference_mm == pytest.approx(record.circumference_mm, abs=0.5)  # kept, not fitted
+    mock = acquire(scn, 0.0, np.random.default_rng(1)).to_measurement(scn)
+    assert sparse_ring(8, mock.circumference_mm, mock.velocity_m_s, mock.excitation_hz, mock.cycles)
+    model = path_model_for(mock)
+    assert not model.elements and model.circumference_mm == mock.circumference_mm  # a plane wave, the record's wrap
+    full_wave = simulate(_small_eight_ring("reflecting"))  # the FDTD's 8 patches do launch order 8
+    assert path_model_for(full_wave).elements
 
 
 def test_gather_tables_are_kept_by_bytes_not_by_count(monkeypatch):
