@@ -21,6 +21,10 @@ record's circumference is kept. Measured (2026-12-03): the SH full-wave records'
 at the true wrap with 0.48-0.64 of the median (dev 360 mm, own 347.4); the own in-plane model's
 8-ring record (tilted patches: S0 and mode conversion too) has a flat, many-minima curve (best
 0.76 of the median, at 0.905 x 360 mm, the true 0.965 not even a local minimum): kept at 360.
+
+``RingFit.plane_unexplained`` is the same fit with an axisymmetric plane wave from the ring:
+imaging/multipath.py ``path_model_for`` models the ring element by element only where the
+element model explains the baseline clearly better (``ELEMENTS_EVIDENCE``).
 """
 from __future__ import annotations
 
