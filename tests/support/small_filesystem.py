@@ -4,6 +4,7 @@ Without the permission to mount, a test skips with the reason, except with CI=tr
 """
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 from collections.abc import Iterator
@@ -38,13 +39,24 @@ def small_filesystem(where: Path, size_mib: int) -> Iterator[Path]:
 
 
 def fill(directory: Path, leave_bytes: int, name: str = "filler") -> Path:
-    """A file that takes all free space of ``directory``'s file system but ``leave_bytes``."""
+    """A file that takes all free space of ``directory``'s file system but ``leave_bytes``.
+
+    A process writing to the same file system meanwhile (the gateway under test) may take the
+    last bytes first: the file system is then full before the filler is, which is what was wanted
+    (unbuffered, so that it shows at a write, not at close)."""
     path = directory / name
     size = max(0, free_bytes(directory) - leave_bytes)
-    with path.open("wb") as file:
+    with path.open("wb", buffering=0) as file:
         chunk = b"\0" * MIB
         while size > 0:
-            written = file.write(chunk[: min(size, MIB)])
+            try:
+                written = file.write(chunk[: min(size, MIB)])
+            except OSError as exc:
+                if exc.errno != errno.ENOSPC:
+                    raise
+                break
+            if not written:  # nothing more goes in: as full as it gets
+                break
             size -= written
     return path
 
