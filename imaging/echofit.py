@@ -125,6 +125,16 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int) -> n
     return sp_fft.irfft(spec, n_fft, axis=-1)[..., size:size + n]
 
 
+def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: int) -> np.ndarray:
+    """[n_rx, n_pos, 1 + 2 orders]: 1, cos k d, sin k d (k = 1..orders) of each receiver's bearing d from each position."""
+    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
+    bearing = np.deg2rad(rel)  # [m, pos]
+    basis = [np.ones_like(bearing)]
+    for k in range(1, orders + 1):
+        basis += [np.cos(k * bearing), np.sin(k * bearing)]
+    return np.stack(basis, axis=-1)
+
+
 def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
                      shared: bool) -> list[np.ndarray]:
     """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
@@ -138,13 +148,8 @@ def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[f
     if not shared:
         coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
     else:
-        rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
-        bearing = np.deg2rad(rel)  # [m, pos]
-        basis = [np.ones_like(bearing)]
-        for order in range(1, orders + 1):
-            basis += [np.cos(order * bearing), np.sin(order * bearing)]
         per_column = columns.shape[1] // n_pos
-        wc = np.repeat(np.stack(basis, axis=-1), per_column, axis=1)  # [m, a, K]
+        wc = np.repeat(_bearing_basis(scene, positions, orders), per_column, axis=1)  # [m, a, K]
         n_basis = wc.shape[-1]
         big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(columns.shape[1] * n_basis, -1)
         big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
@@ -260,11 +265,7 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
     _g, _length, weight = stacked_paths(scene.model, z[None, :], rel)  # [P, m, pos]
-    bearing = np.deg2rad(rel)  # [m, pos]
-    basis = [np.ones_like(bearing)]
-    for k in range(1, orders + 1):
-        basis += [np.cos(k * bearing), np.sin(k * bearing)]
-    basis_arr = np.stack(basis, axis=-1)  # [m, pos, K]
+    basis_arr = _bearing_basis(scene, positions, orders)  # [m, pos, K]
     n_basis = basis_arr.shape[-1]
     # Columns per receiver: (position, path, shape), shape fastest.
     starts = np.repeat(samples.reshape(n_rx, -1), 2, axis=1)

@@ -265,9 +265,7 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
     groups = np.zeros((n_groups,) + grid.shape, dtype=np.complex128 if coherent else np.float64)
     weight_sq = np.zeros((n_groups,) + grid.shape)
     c_mm_s = scene.velocity_m_s * MM_PER_M
-    if rows.size and model.elements:
-        return _combine(*_local_element_sums(feature, scene, rows), normalise)
-    if rows.size and compiled and local_sums_compiled is not None:
+    if rows.size and compiled and local_sums_compiled is not None and not model.elements:
         families = model.families()
         offset, sign, image, factor = (np.array([getattr(f, name) for f in families], dtype=np.float64)
                                        for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
@@ -276,22 +274,16 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
                             np.ascontiguousarray(grid.angle_deg), offset, sign, image, factor, model.wraps,
                             float(model.circumference_mm), float(model.wavelength_mm), bool(model.polarization),
                             float(c_mm_s), scene.t0_s, scene.fs_hz, int(power), groups, weight_sq)
-    elif rows.size:
-        n = feature.shape[1]
-        rel = grid.angle_deg[None, None, :] - rx_angles_deg[rows, None, None]
-        family, length, weight = stacked_paths(model, grid.axial_mm[None, :, None], rel)  # [P, n_rx, n_ax, n_an]
-        k = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5)
-        inside = (k >= 0) & (k < n)
-        w = np.where(inside, weight**power, 0.0)
-        samples = feature[rows[None, :, None, None], np.where(inside, k, 0).astype(np.intp)]
-        groups[family] += np.sum(w * samples, axis=1)  # one path per group: ``family`` has no repeats
-        weight_sq[family] += np.sum(w * w, axis=1)
+    elif rows.size:  # numpy; always for a model with Tx elements (the compiled kernel has no element images)
+        groups, weight_sq = _local_numpy_sums(feature, scene, rows)
     return _combine(groups, weight_sq, normalise)
 
 
-def _local_element_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``local_multipath_pixels``' group sums and energies for a model with Tx elements (numpy: a group holds
-    several paths of one receiver, whose noise is correlated)."""
+def _local_numpy_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``local_multipath_pixels``' group sums and summed squared weights, vectorised over receivers and paths.
+
+    With Tx elements a group holds several paths of one receiver, whose noise is correlated: their
+    energy is ``coherent_energy``'s; otherwise each group has one path per receiver and it is sum w^2."""
     grid, model, power = scene.grid, scene.model, scene.power
     n = feature.shape[1]
     c_mm_s = scene.velocity_m_s * MM_PER_M
@@ -305,6 +297,10 @@ def _local_element_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> 
     samples = feature[rows[None, :, None, None], np.where(inside, k, 0).astype(np.intp)]
     groups = np.zeros((n_groups,) + grid.shape, dtype=np.result_type(feature.dtype, np.float64))
     np.add.at(groups, family, np.sum(w * samples, axis=1))
+    weight_sq = np.zeros((n_groups,) + grid.shape)
+    if not model.elements:
+        weight_sq[family] += np.sum(w * w, axis=1)  # one path per group: ``family`` has no repeats
+        return groups, weight_sq
     idx = np.where(inside, k, n).astype(np.int32).reshape(family.size, -1)
     correlation = analytic_noise_correlation(scene.fs_hz, scene.excitation_hz, scene.cycles)
     energy = coherent_energy(family, idx, w.reshape(family.size, -1), correlation, n_groups, n)

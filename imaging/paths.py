@@ -135,6 +135,24 @@ def sparse_ring(n_elements: int, circumference_mm: float, velocity_m_s: float, e
     return ring_order_cutoff_hz(n_elements, circumference_mm, velocity_m_s) < excitation_hz * (1.0 + 2.0 / cycles)
 
 
+def _element_incident(model: PathModel, zeta: np.ndarray, pixel_arc_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(length_mm, weight) [E, *broadcast shape] of the cylindrical wave from every Tx element image (element-major,
+    then image -tx_images..tx_images) at pixels ``zeta`` mm along the axis from the (imaged) ring, at ``pixel_arc_mm``
+    round the pipe from angle 0."""
+    circ = model.circumference_mm
+    images = np.arange(-model.tx_images, model.tx_images + 1) * circ
+    tx = np.repeat(np.asarray(model.tx_arcs_mm, dtype=np.float64), images.size)
+    shift = np.tile(images, len(model.tx_arcs_mm))
+    zeta = np.asarray(zeta, dtype=np.float64)
+    extra = (1,) * len(np.broadcast_shapes(zeta.shape, np.shape(pixel_arc_mm)))
+    base = signed_arc_mm((np.asarray(pixel_arc_mm, dtype=np.float64)[None] - tx.reshape((-1,) + extra))
+                         * (360.0 / circ), circ)
+    s = base + shift.reshape((-1,) + extra)
+    r = np.sqrt(np.square(zeta)[None] + np.square(s))
+    w = path_weight(circ / len(model.tx_arcs_mm) / model.wavelength_mm, zeta[None], r, model)
+    return r, np.where(w < NEGLIGIBLE_WEIGHT, 0.0, w)
+
+
 def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndarray,
                    family: PathFamily) -> list[tuple[np.ndarray, np.ndarray]]:
     """(length_mm, weight) of each incident term of ``family`` at pixels (axial, arc round the pipe from angle 0):
@@ -142,17 +160,8 @@ def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndar
     zeta = family.in_offset_mm + family.in_sign * np.asarray(axial_mm, dtype=np.float64)
     if not model.elements:
         return [(np.abs(zeta), np.ones(np.shape(zeta)))]
-    circ, lam = model.circumference_mm, model.wavelength_mm
-    scale = circ / len(model.tx_arcs_mm) / lam
-    terms = []
-    for arc in model.tx_arcs_mm:
-        base = signed_arc_mm((np.asarray(pixel_arc_mm, dtype=np.float64) - arc) * (360.0 / circ), circ)
-        for image in range(-model.tx_images, model.tx_images + 1):
-            s = base + image * circ
-            r = np.sqrt(np.square(zeta) + np.square(s))
-            w = path_weight(scale, zeta, r, model)
-            terms.append((r, np.where(w < NEGLIGIBLE_WEIGHT, 0.0, w)))
-    return terms
+    lengths, weights = _element_incident(model, zeta, pixel_arc_mm)
+    return list(zip(lengths, weights, strict=True))
 
 
 def coherence_groups(model: PathModel) -> int:
@@ -270,29 +279,23 @@ def _stacked_element_paths(
     shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
     if not families:
         return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
-    circ, lam = model.circumference_mm, model.wavelength_mm
+    circ = model.circumference_mm
     z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
     rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
     pixel_arc = (rel + rx_angle_deg) * (circ / 360.0)
     arc = signed_arc_mm(rel, circ)
     legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(arc, circ, model.wraps)))  # [W, ...]
-    images = np.arange(-model.tx_images, model.tx_images + 1) * circ
-    offsets = np.array([[tx, im] for tx in model.tx_arcs_mm for im in images])  # [E, 2]: element, image shift
     extra = (1,) * len(shape)
-    base = signed_arc_mm((pixel_arc[None] - offsets[:, 0].reshape((-1,) + extra)) * (360.0 / circ), circ)
-    s = base + offsets[:, 1].reshape((-1,) + extra)  # [E, ...]
     offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
                                    for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
     zeta = offset + sign * z[None]  # [F, ...]
-    r_in = np.sqrt(np.square(zeta[:, None]) + np.square(s[None]))  # [F, E, ...]
-    w_in = path_weight(circ / len(model.tx_arcs_mm) / lam, zeta[:, None], r_in, model)
-    w_in = np.where(w_in < NEGLIGIBLE_WEIGHT, 0.0, w_in)
+    r_in, w_in = (np.moveaxis(a, 0, 1) for a in _element_incident(model, zeta, pixel_arc))  # [F, E, ...]
     dz = image - z[None]  # [F, ...]
     r_out = np.hypot(dz[:, None], legs[None])  # [F, W, ...]
     w_out = path_weight(factor[:, None], dz[:, None], r_out, model)
     length = r_in[:, None] + r_out[:, :, None]  # [F, W, E, ...]
     weight = w_in[:, None] * w_out[:, :, None]
-    n_f, n_w, n_e = len(families), model.wraps, offsets.shape[0]
+    n_f, n_w, n_e = len(families), model.wraps, r_in.shape[1]
     groups = np.repeat(np.arange(n_f * n_w, dtype=np.int64), n_e)
     return groups, length.reshape((-1,) + shape), weight.reshape((-1,) + shape)
 

@@ -125,9 +125,9 @@ def fit_sparse_ring(m: Measurement, model: PathModel, near_end_mm: float | None,
 
     def compute() -> RingFit:
         plane = _fit(m, dataclasses.replace(model, tx_arcs_mm=()), near_end_mm, far_end_mm).unexplained
-        return _elements(plane)._replace(plane_unexplained=plane)
+        return _elements()._replace(plane_unexplained=plane)
 
-    def _elements(plane: float) -> RingFit:
+    def _elements() -> RingFit:
         if not fit_wrap:
             return _fit(m, model, near_end_mm, far_end_mm)
         scan = [_fit(m, _with_wrap(model, m, f * m.circumference_mm), near_end_mm, far_end_mm) for f in WRAP_SCAN]
