@@ -258,9 +258,12 @@ def select_compatible_baseline(
     rx_mask: np.ndarray | None = None,
     shortlist: int | None = OBS_SHORTLIST,
     mismatch: str | None = None,
+    keep_best: bool = False,
 ) -> BaselineMatch | NoValidBaseline:
     """``select_baseline`` among the library entries ``compatible`` (indices already checked with
-    ``check_compatible``); ``mismatch``: why the others are not, for the abstention."""
+    ``check_compatible``); ``mismatch``: why the others are not, for the abstention. ``keep_best``:
+    the best match even when it leaves more than ``max_residual`` (the caller judges it, with
+    ``unexplained``); the search is the same either way."""
     if len(library) == 0:
         raise CompensationError("the baseline library is empty")
     compatible = list(compatible)
@@ -270,7 +273,7 @@ def select_compatible_baseline(
     if not compensate:
         target = current.traces[rows].astype(np.float64)
         return _choose(library, [(_relative_residual(target, library[i].traces[rows].astype(np.float64)), i, 0.0)
-                                 for i in compatible], {}, max_residual)
+                                 for i in compatible], {}, max_residual, keep_best)
     order = compatible
     if shortlist is not None and len(compatible) > shortlist:
         target = current.traces[rows, ::SEARCH_DECIMATION].astype(np.float64)
@@ -284,21 +287,29 @@ def select_compatible_baseline(
             break
         stretch, residual, moved[i] = _stretch_search(library[i], current, max_stretch=max_stretch, rx_mask=rx_mask)
         candidates.append((residual, i, stretch))
-    return _choose(library, candidates, moved, max_residual)
+    return _choose(library, candidates, moved, max_residual, keep_best)
+
+
+def unexplained(match: BaselineMatch, max_residual: float, why: str = "") -> NoValidBaseline:
+    """The abstention for a best ``match`` that leaves more than ``max_residual`` of the record's
+    energy unexplained; ``why``: what else was weighed (appended to the reason)."""
+    return NoValidBaseline(
+        match.index, match.residual, max_residual,
+        f"best baseline leaves {match.residual:.3g} of the signal energy unexplained (limit {max_residual:.3g})"
+        + (f"; {why}" if why else ""),
+    )
 
 
 def _choose(library: Sequence[Measurement], candidates: list[tuple[float, int, float]], moved: dict[int, np.ndarray],
-            max_residual: float) -> BaselineMatch | NoValidBaseline:
+            max_residual: float, keep_best: bool = False) -> BaselineMatch | NoValidBaseline:
     """The best (residual, index, stretch) candidate as a match, or the abstention."""
     # Among near-equal matches prefer the least stretch: the closest temperature also matches
     # what a stretch cannot model (amplitude, mode shape changes with temperature).
     lowest = min(c[0] for c in candidates)
     ties = [c for c in candidates if c[0] <= lowest * (1.0 + TIE_TOLERANCE)]
     residual, index, stretch = min(ties, key=lambda c: (abs(c[2]), c[0]))
-    if not residual <= max_residual:
-        return NoValidBaseline(
-            index, residual, max_residual,
-            f"best baseline leaves {residual:.3g} of the signal energy unexplained (limit {max_residual:.3g})",
-        )
     chosen = library[index] if stretch == 0.0 else replace(library[index], traces=moved[index])
-    return BaselineMatch(index, stretch, residual, chosen)
+    match = BaselineMatch(index, stretch, residual, chosen)
+    if not residual <= max_residual and not keep_best:
+        return unexplained(match, max_residual)
+    return match

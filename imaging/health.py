@@ -21,6 +21,9 @@ from imaging.measurement import Measurement
 MIN_AMPLITUDE_RATIO = 0.5  # current / baseline direct-arrival amplitude below this: channel faulty
 MAX_AMPLITUDE_RATIO = 2.0
 MAX_DELAY_PERIODS = 0.25  # timing change (relative to the median channel) above a quarter period
+# A change of the direct arrival's amplitude common to the receivers beyond this (|median ln ratio|,
+# 0.15: 14 % weaker or 16 % stronger) is the ring's gain or coupling, not the pipe: ``common_gain_change``.
+MAX_COMMON_GAIN_CHANGE = 0.15
 
 
 FaultKind = Literal["no_signal", "amplitude", "timing"]
@@ -88,6 +91,23 @@ def receiver_faults(
             continue
         faults.append(SensorFault(m, float(current.rx_angles_deg[m]), kind, float(ratio[m]), float(delay[m])))
     return faults
+
+
+def common_gain_change(baseline: Measurement, current: Measurement, mask: np.ndarray | None = None) -> float:
+    """ln(current / baseline) of the direct arrival's amplitude common to the receivers: the median over
+    the receivers ``mask`` keeps (all when None), for a pair known compatible.
+
+    A ring whose gain or coupling changed as a whole (ageing bond, a replaced preamplifier) moves
+    every receiver alike; a defect moves those in its shadow, some up, some down. Measured on the
+    full-wave dev set (2026-12-03): a near-rigid or light mass on an 8-ring, or a mass beside a notch on
+    a 16-ring, moves single receivers by -0.33..+0.17 but the median by 0.06 at most; a 25 % gain
+    change gives 0.23-0.29 with or without such a defect."""
+    base, cur = direct_arrival(baseline), direct_arrival(current)
+    keep = np.ones(current.n_rx, bool) if mask is None else np.asarray(mask, bool)
+    keep &= (base.amplitude > 0) & (cur.amplitude > 0)
+    if not keep.any():
+        return 0.0
+    return float(np.median(np.log(cur.amplitude[keep] / base.amplitude[keep])))
 
 
 def healthy_mask(n_rx: int, faults: list[SensorFault]) -> np.ndarray:

@@ -287,6 +287,23 @@ def find_defects(
     return first, found, first_peak
 
 
+def explained_by_defects(residual: np.ndarray, scene: Scene, found: list[Found]) -> float:
+    """The fraction of ``residual``'s energy (as imaged: after ``scene.project``) that the located
+    defects among ``found`` explain: their echoes fitted jointly, each path's amplitude a circular
+    harmonic of the receiver's bearing up to PATTERN_ORDERS (a strong scatterer's field is
+    directional: the isotropic fit leaves much of a near-rigid point's). A maximum on the Tx or Rx
+    ring counts nothing: what changes at a ring (a transducer's gain, an end echo of another pipe)
+    is not a located defect. 0 when nothing is located or the residual is empty."""
+    original = np.asarray(residual, dtype=np.float64)
+    energy = float(np.sum(original * original))
+    located = [f for f in found if not _on_the_span_edge(scene.grid, f.estimate)]
+    if not located or not energy > 0:
+        return 0.0
+    fits = _Search(original, scene).fits(located, orders=PATTERN_ORDERS)
+    left = original - sum(fits)
+    return max(0.0, 1.0 - float(np.sum(left * left)) / energy)
+
+
 def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
     """Does the peak sit on either end of the imaged axial span (the Tx or the Rx ring), within EDGE_MM?"""
     lo = float(grid.axial_mm[0])

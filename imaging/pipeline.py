@@ -24,21 +24,31 @@ from imaging.compensation import (
     BaselineMatch,
     NoValidBaseline,
     select_compatible_baseline,
+    unexplained,
 )
 from imaging.detection import default_threshold
 from imaging.dimap import BaselineMismatch, DIMap, check_compatible, paper_di_map, windowed_energy
 from imaging.features import FEATURES
 from imaging.grid import Grid
-from imaging.health import SensorFault, healthy_mask, receiver_faults
+from imaging.health import MAX_COMMON_GAIN_CHANGE, SensorFault, common_gain_change, healthy_mask, receiver_faults
 from imaging.localize import Confidence, Estimate, locate_peak, peak_confidence
 from imaging.measurement import Measurement
-from imaging.modal import default_modal_orders, remove_low_orders
-from imaging.multidefect import find_defects
+from imaging.modal import axisymmetric_fraction, default_modal_orders, remove_low_orders
+from imaging.multidefect import explained_by_defects, find_defects
 from imaging.multipath import path_model_for
 from imaging.region import Region, localization_region
 from imaging.scene import Scene
 
 METHODS: tuple[str, ...] = ("multipath", "paper")
+# A best baseline that leaves more than ``max_residual`` of the record unexplained is still the
+# reference when the located defects the map finds explain at least this fraction of what it leaves:
+# the change is a strong defect, not a wrong reference (docs/imaging.md, "A strong defect or a wrong
+# reference"). Measured (dev + own full-wave sets, 2026-12-03): strong defects 0.46-0.82; a reference
+# of another pipe (other ends) 0.00-0.01, a uniform 25 % gain change 0.27-0.28 (and on a ring).
+MIN_EXPLAINED_BY_DEFECTS = 0.4
+RING_MARGIN_MM = 10.0  # ... and whose strongest change lies this far from the Tx and Rx rings at least
+MAX_AXISYMMETRIC = 0.6  # ... and when at most this share of what it leaves is common to every receiver
+#                         (imaging/modal.py ``axisymmetric_fraction``: strong defects 0.07-0.42, other ends 0.80-1.00)
 
 
 class SettingsError(ValueError):
@@ -125,6 +135,20 @@ class Defect:
 
 
 @dataclass(frozen=True)
+class StrongChange:
+    """The best baseline left more than ``max_residual`` of the record unexplained, and the located
+    defects explain ``explained`` of what it left (>= MIN_EXPLAINED_BY_DEFECTS): the record is imaged
+    against it, the defects reported, the baseline kept as the reference."""
+
+    residual: float
+    max_residual: float
+    explained: float
+
+    def as_dict(self) -> dict:
+        return {"residual": self.residual, "max_residual": self.max_residual, "explained_by_defects": self.explained}
+
+
+@dataclass(frozen=True)
 class Assessment:
     """The outcome of one assessment. With ``valid_baseline`` False there is no map and no defect."""
 
@@ -139,6 +163,7 @@ class Assessment:
     sensor_faults: list[SensorFault]
     elapsed_ms: float
     extra: dict = field(default_factory=dict)
+    strong_change: StrongChange | None = None
 
     @property
     def valid_baseline(self) -> bool:
@@ -171,6 +196,8 @@ class Assessment:
             out["window_samples"] = self.di_map.window_samples
         if self.no_valid_baseline is not None:
             out["no_valid_baseline"] = self.no_valid_baseline.as_dict()
+        if self.strong_change is not None:
+            out["strong_change"] = self.strong_change.as_dict()
         return {**out, **self.extra}
 
 
@@ -222,11 +249,15 @@ def scene_for(match: BaselineMatch, entry: Measurement, current: Measurement, gr
 
 
 def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, settings: AssessSettings,
-               threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
+               threshold: float) -> tuple[DIMap, Estimate, list[Defect], float]:
+    """(first map, peak, defects, the fraction of the residual the located defects explain: computed
+    only when ``match`` leaves more than ``settings.max_residual``, else NaN)."""
     residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     if scene.project is not None:
         residual = scene.project(residual)
     first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
+    explained = (explained_by_defects(residual, scene, found) if not match.residual <= settings.max_residual
+                 else math.nan)
     peak = found[0].estimate if found else first_peak
     defects = []
     for f in found:
@@ -235,7 +266,7 @@ def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, setting
         region = localization_region(conf, circumference_mm=current.circumference_mm,
                                      axial_span_mm=current.tx_rx_distance_mm)
         defects.append(Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di, conf, f.severity, region))
-    return first, peak, defects
+    return first, peak, defects, explained
 
 
 def assess(current: Measurement, baselines: Sequence[Measurement], settings: AssessSettings | None = None) -> Assessment:
@@ -259,21 +290,79 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     match = select_compatible_baseline(
         baselines, compatible, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
         max_residual=settings.max_residual, rx_mask=mask, mismatch=next((w for w in mismatches if w), None),
+        keep_best=True,
     )
     limit = settings.max_compensated_stretch
     if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:
         match = _too_far_from_the_library(match, settings)
+    if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
+            settings.method == "paper" or not math.isfinite(match.residual)):
+        match = unexplained(match, settings.max_residual)  # only the multipath map can tell a defect from it
     if isinstance(match, NoValidBaseline):
-        elapsed = (time.perf_counter() - start) * 1e3
-        return Assessment(settings.method, settings.feature, threshold, None, None, [], None, match, faults, elapsed)
+        return _abstain(settings, threshold, match, faults, start)
     grid = settings.grid or default_grid(settings.method, current.tx_rx_distance_mm, current.rx_angles_deg)
+    strong = None
     if settings.method == "paper":
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
+        over = not match.residual <= settings.max_residual
+        why = _changed_as_a_whole(match, current, mask) if over else None
+        if why is not None:
+            return _abstain(settings, threshold, unexplained(match, settings.max_residual, why), faults, start)
         scene = scene_for(match, baselines[match.index], current, grid, mask, settings)
-        di_map, peak, defects = _multipath(match, current, scene, settings, threshold)
+        di_map, peak, defects, explained = _multipath(match, current, scene, settings, threshold)
+        if over:
+            judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm)
+            if isinstance(judged, str):
+                return _abstain(settings, threshold, unexplained(match, settings.max_residual, judged), faults, start)
+            strong = judged
     elapsed = (time.perf_counter() - start) * 1e3
-    return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed)
+    return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed,
+                      strong_change=strong)
+
+
+def strong_change(match: BaselineMatch, defects: list[Defect], explained: float, max_residual: float,
+                  tx_rx_distance_mm: float) -> StrongChange | str:
+    """Judge a best baseline that leaves more than ``max_residual`` of the record: a strong defect (the
+    StrongChange to report with its defects) or a wrong reference (why not, for the abstention).
+
+    A strong defect is located (its strongest change is not at the Tx or Rx ring: a change there is
+    the ring's own, or of what lies beyond it, such as another pipe's ends) and its echoes explain at
+    least MIN_EXPLAINED_BY_DEFECTS of what the baseline leaves (``explained``: ``explained_by_defects``)."""
+    if not defects:
+        return "no defect is located in it: the reference is wrong or stale, or the pipe changed as a whole"
+    z = defects[0].axial_mm
+    if min(z, tx_rx_distance_mm - z) < RING_MARGIN_MM:
+        ring = "Tx" if z < tx_rx_distance_mm / 2 else "Rx"
+        return (f"its strongest change sits at the {ring} ring ({z:.0f} mm): a change of the transducers or of "
+                "what lies beyond the ring, not a defect between the rings")
+    if not explained >= MIN_EXPLAINED_BY_DEFECTS:
+        return (f"the defects located explain {explained:.0%} of it (a strong defect explains at least "
+                f"{MIN_EXPLAINED_BY_DEFECTS:.0%}): the reference is wrong or stale, or the pipe changed as a whole")
+    return StrongChange(match.residual, max_residual, explained)
+
+
+def _changed_as_a_whole(match: BaselineMatch, current: Measurement, mask: np.ndarray) -> str | None:
+    """Why what ``match`` leaves of ``current`` is a change of the ring or of the whole pipe, not of a point
+    between the rings (None: it may be a defect's)."""
+    gain = common_gain_change(match.baseline, current, mask)
+    if abs(gain) > MAX_COMMON_GAIN_CHANGE:
+        return (f"the direct arrival is {math.expm1(gain):+.0%} on most receivers alike: the transducers' gain or "
+                "coupling changed, not the pipe (a defect moves only the receivers in its shadow); take a new "
+                "baseline once the ring is checked and the pipe known sound")
+    residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
+    common = axisymmetric_fraction(residual, mask)
+    if common > MAX_AXISYMMETRIC:
+        return (f"{common:.0%} of it is the same on every receiver: the pipe's ends or what lies beyond the rings "
+                "changed, or the reference is of another pipe (a point defect's echo differs from receiver to "
+                "receiver)")
+    return None
+
+
+def _abstain(settings: AssessSettings, threshold: float, why: NoValidBaseline, faults: list[SensorFault],
+             start: float) -> Assessment:
+    elapsed = (time.perf_counter() - start) * 1e3
+    return Assessment(settings.method, settings.feature, threshold, None, None, [], None, why, faults, elapsed)
 
 
 def _too_far_from_the_library(match: BaselineMatch, settings: AssessSettings) -> NoValidBaseline:
