@@ -166,7 +166,8 @@ class ImagingSettings(_Section):
     feature: Literal["analytic", "envelope", "squared"] = "analytic"
     compensate: bool = Field(True, description="temperature compensation: optimal baseline selection + stretch")
     max_residual: float | None = Field(
-        None, gt=0, description="abstain above this relative residual after compensation (None: the default)"
+        None, gt=0, description="relative residual after compensation above which the record is a wrong reference "
+        "unless located defects explain it (a strong defect: docs/imaging.md); None: the default 0.05"
     )
     max_defects: int = Field(3, ge=1, le=16)
     max_compensated_stretch: float = Field(
