@@ -99,9 +99,9 @@ def common_gain_change(baseline: Measurement, current: Measurement, mask: np.nda
 
     A ring whose gain or coupling changed as a whole (ageing bond, a replaced preamplifier) moves
     every receiver alike; a defect moves those in its shadow, some up, some down. Measured on the
-    full-wave dev set (2026-12-03): a near-rigid or light mass on an 8-ring, or a mass beside a notch on
-    a 16-ring, moves single receivers by -0.33..+0.17 but the median by 0.06 at most; a 25 % gain
-    change gives 0.23-0.29 with or without such a defect."""
+    full-wave dev and own sets (2026-12-03, bench/bench_reference_check.py): a near-rigid or light mass
+    moves single receivers by -0.33..+0.17 but the median by 0.106 at most; a 25 % gain change gives
+    0.23-0.29 with or without such a defect."""
     base, cur = direct_arrival(baseline), direct_arrival(current)
     keep = np.ones(current.n_rx, bool) if mask is None else np.asarray(mask, bool)
     keep &= (base.amplitude > 0) & (cur.amplitude > 0)

@@ -73,9 +73,10 @@ def axisymmetric_fraction(residual: np.ndarray, rx_mask: np.ndarray | None = Non
 
     What changes the pipe or the ring as a whole (its ends, what lies beyond the rings, the ring's
     gain, another pipe's reference) is axisymmetric; a point defect between the rings scatters a
-    field whose arrival changes from receiver to receiver. Measured on the full-wave dev set and the
-    project's FDTD (2026-12-03): every strong defect 0.07-0.42 (most on 8-rings, whose few receivers
-    keep more of any field in their mean); a baseline of the same pipe with other ends 0.80-1.00."""
+    field whose arrival changes from receiver to receiver. Measured on the full-wave dev and own sets
+    (2026-12-03, bench/bench_reference_check.py): every strong defect 0.05-0.47 (most on 8-rings, whose
+    few receivers keep more of any field in their mean); a baseline of the same pipe with other ends
+    0.80-1.00."""
     residual = np.asarray(residual, dtype=np.float64)
     mask = np.ones(residual.shape[0], bool) if rx_mask is None else np.asarray(rx_mask, bool)
     rows = residual[mask]
