@@ -290,6 +290,15 @@ def select_compatible_baseline(
     return _choose(library, candidates, moved, max_residual, keep_best)
 
 
+def as_recorded(library: Sequence[Measurement], index: int, current: Measurement,
+                rx_mask: np.ndarray | None = None) -> BaselineMatch:
+    """Library entry ``index`` as the match of ``current`` without any stretch (the receivers ``rx_mask``
+    keeps give the residual): what is judged when the stretch the search found cannot be trusted."""
+    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    residual = _relative_residual(current.traces[rows].astype(np.float64), library[index].traces[rows].astype(np.float64))
+    return BaselineMatch(index, 0.0, residual, library[index])
+
+
 def unexplained(match: BaselineMatch, max_residual: float, why: str = "") -> NoValidBaseline:
     """The abstention for a best ``match`` that leaves more than ``max_residual`` of the record's
     energy unexplained; ``why``: what else was weighed (appended to the reason)."""

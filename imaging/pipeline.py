@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -23,6 +23,7 @@ from imaging.compensation import (
     STRETCH_PER_DEGC,
     BaselineMatch,
     NoValidBaseline,
+    as_recorded,
     select_compatible_baseline,
     unexplained,
 )
@@ -216,7 +217,6 @@ def _paper(match: BaselineMatch, current: Measurement, grid: Grid, mask: np.ndar
            threshold: float) -> tuple[DIMap, Estimate, list[Defect]]:
     # Faulty receivers are left out by giving them a zero residual.
     masked = np.where(mask[:, None], current.traces, match.baseline.traces)
-    from dataclasses import replace
 
     raw = paper_di_map(match.baseline, replace(current, traces=masked), grid)
     di_map = DIMap(raw.pixels / paper_reference_energy(match.baseline), grid, "paper", raw.window_samples)
@@ -250,15 +250,14 @@ def scene_for(match: BaselineMatch, entry: Measurement, current: Measurement, gr
 
 
 def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, settings: AssessSettings,
-               threshold: float) -> tuple[DIMap, Estimate, list[Defect], float]:
+               threshold: float, judge: bool) -> tuple[DIMap, Estimate, list[Defect], float]:
     """(first map, peak, defects, the fraction of the residual the located defects explain: computed
-    only when ``match`` leaves more than ``settings.max_residual``, else NaN)."""
+    only when ``judge``, else NaN)."""
     residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     if scene.project is not None:
         residual = scene.project(residual)
     first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
-    explained = (explained_by_defects(residual, scene, found) if not match.residual <= settings.max_residual
-                 else math.nan)
+    explained = explained_by_defects(residual, scene, found) if judge else math.nan
     peak = found[0].estimate if found else first_peak
     defects = []
     for f in found:
@@ -294,8 +293,12 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         keep_best=True,
     )
     limit = settings.max_compensated_stretch
+    beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged
     if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:
-        match = _too_far_from_the_library(match, settings)
+        # A strong scatterer can buy a stretch no temperature made (docs/imaging.md): the entry as
+        # recorded stands in if it passes the strong-change tests, else the record is abstained on.
+        beyond = _too_far_from_the_library(match, settings)
+        match = as_recorded(baselines, match.index, current, mask) if settings.method == "multipath" else beyond
     if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
             settings.method == "paper" or not math.isfinite(match.residual)):
         match = unexplained(match, settings.max_residual)  # only the multipath map can tell a defect from it
@@ -306,16 +309,16 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     if settings.method == "paper":
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
-        over = not match.residual <= settings.max_residual
+        over = beyond is not None or not match.residual <= settings.max_residual
         why = _changed_as_a_whole(match, current, mask) if over else None
         if why is not None:
-            return _abstain(settings, threshold, unexplained(match, settings.max_residual, why), faults, start)
+            return _abstain(settings, threshold, _refused(match, beyond, settings, why), faults, start)
         scene = scene_for(match, baselines[match.index], current, grid, mask, settings)
-        di_map, peak, defects, explained = _multipath(match, current, scene, settings, threshold)
+        di_map, peak, defects, explained = _multipath(match, current, scene, settings, threshold, over)
         if over:
             judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm)
             if isinstance(judged, str):
-                return _abstain(settings, threshold, unexplained(match, settings.max_residual, judged), faults, start)
+                return _abstain(settings, threshold, _refused(match, beyond, settings, judged), faults, start)
             strong = judged
     elapsed = (time.perf_counter() - start) * 1e3
     return Assessment(settings.method, settings.feature, threshold, di_map, peak, defects, match, None, faults, elapsed,
@@ -358,6 +361,15 @@ def _changed_as_a_whole(match: BaselineMatch, current: Measurement, mask: np.nda
                 "changed, or the reference is of another pipe (a point defect's echo differs from receiver to "
                 "receiver)")
     return None
+
+
+def _refused(match: BaselineMatch, beyond: NoValidBaseline | None, settings: AssessSettings,
+             why: str) -> NoValidBaseline:
+    """The abstention once the strong-change tests refused ``match``: the stretch bound's (``beyond``),
+    or the residual bound's, with ``why``."""
+    if beyond is None:
+        return unexplained(match, settings.max_residual, why)
+    return replace(beyond, reason=f"{beyond.reason} (unstretched, the baseline leaves {match.residual:.3g}: {why})")
 
 
 def _abstain(settings: AssessSettings, threshold: float, why: NoValidBaseline, faults: list[SensorFault],
