@@ -512,9 +512,11 @@ def _log_assessment(assessment: Assessment) -> None:
         log.warning("no map: %s", assessment.no_valid_baseline.reason)
     if assessment.strong_change is not None:
         change = assessment.strong_change
-        log.warning("strong change: the baseline leaves %.3g of the record unexplained (limit %.3g), the defects "
-                    "located explain %.0f%% of it: reported as defects", change.residual, change.max_residual,
-                    100 * change.explained)
+        unstretched = ("" if change.refused_stretch is None else
+                       f" as recorded (the stretch search wanted {change.refused_stretch:+.2%}, beyond the range)")
+        log.warning("strong change: the baseline%s leaves %.3g of the record unexplained (limit %.3g), the defects "
+                    "located explain %.0f%% of it: reported as defects", unstretched, change.residual,
+                    change.max_residual, 100 * change.explained)
     for fault in assessment.sensor_faults:
         log.warning("sensor fault on receiver %d (%.1f deg): %s; left out of the map",
                     fault.rx_index, fault.rx_angle_deg, fault.kind)

@@ -3,8 +3,10 @@
     current + baselines --(health)--> healthy receivers --(OBS + BSS)--> matched baseline
         --(residual feature, all-paths map)--> defects (iterative) --> threshold --> Assessment
 
-Every step is a pure function in its own module; this one only wires them and times the
-whole. Abstains (``Assessment.valid_baseline`` False, no map) when no baseline matches.
+Every step is a pure function in its own module; this one only wires them, times the whole, and
+judges a match beyond the residual or stretch bound (``strong_change``: a strong defect is
+reported, a change of the ring or of the whole pipe is not). Abstains (``Assessment.valid_baseline``
+False, no map) when no baseline matches.
 """
 from __future__ import annotations
 
@@ -138,16 +140,19 @@ class Defect:
 
 @dataclass(frozen=True)
 class StrongChange:
-    """The best baseline left more than ``max_residual`` of the record unexplained, and the located
-    defects explain ``explained`` of what it left (>= MIN_EXPLAINED_BY_DEFECTS): the record is imaged
-    against it, the defects reported, the baseline kept as the reference."""
+    """A record imaged where a bound alone would have abstained: the baseline left ``residual`` (more
+    than ``max_residual``), or the stretch search wanted ``refused_stretch`` (beyond the compensated
+    range: the baseline as recorded was used), and the located defects explain ``explained`` of what
+    it left (>= MIN_EXPLAINED_BY_DEFECTS, ``strong_change``): the defects are reported."""
 
     residual: float
     max_residual: float
     explained: float
+    refused_stretch: float | None = None
 
     def as_dict(self) -> dict:
-        return {"residual": self.residual, "max_residual": self.max_residual, "explained_by_defects": self.explained}
+        return {"residual": self.residual, "max_residual": self.max_residual, "explained_by_defects": self.explained,
+                "refused_stretch": self.refused_stretch}
 
 
 @dataclass(frozen=True)
@@ -294,10 +299,11 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     )
     limit = settings.max_compensated_stretch
     beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged
+    refused = None
     if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:
         # A strong scatterer can buy a stretch no temperature made (docs/imaging.md): the entry as
         # recorded stands in if it passes the strong-change tests, else the record is abstained on.
-        beyond = _too_far_from_the_library(match, settings)
+        beyond, refused = _too_far_from_the_library(match, settings), match.stretch
         match = as_recorded(baselines, match.index, current, mask) if settings.method == "multipath" else beyond
     if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
             settings.method == "paper" or not math.isfinite(match.residual)):
@@ -316,7 +322,8 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         scene = scene_for(match, baselines[match.index], current, grid, mask, settings)
         di_map, peak, defects, explained = _multipath(match, current, scene, settings, threshold, over)
         if over:
-            judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm)
+            judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm,
+                                   refused)
             if isinstance(judged, str):
                 return _abstain(settings, threshold, _refused(match, beyond, settings, judged), faults, start)
             strong = judged
@@ -326,9 +333,10 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
 
 
 def strong_change(match: BaselineMatch, defects: list[Defect], explained: float, max_residual: float,
-                  tx_rx_distance_mm: float) -> StrongChange | str:
-    """Judge a best baseline that leaves more than ``max_residual`` of the record: a strong defect (the
-    StrongChange to report with its defects) or a wrong reference (why not, for the abstention).
+                  tx_rx_distance_mm: float, refused_stretch: float | None = None) -> StrongChange | str:
+    """Judge a baseline that leaves more than ``max_residual`` of the record (or is used as recorded, the
+    stretch search having wanted ``refused_stretch``): a strong defect (the StrongChange to report with
+    its defects) or a wrong reference (why not, for the abstention).
 
     A strong defect is located (its strongest change is not at the Tx or Rx ring: a change there is
     the ring's own, or of what lies beyond it, such as another pipe's ends) and its echoes explain at
@@ -343,7 +351,7 @@ def strong_change(match: BaselineMatch, defects: list[Defect], explained: float,
     if not explained >= MIN_EXPLAINED_BY_DEFECTS:
         return (f"the defects located explain {explained:.0%} of it (a strong defect explains at least "
                 f"{MIN_EXPLAINED_BY_DEFECTS:.0%}): the reference is wrong or stale, or the pipe changed as a whole")
-    return StrongChange(match.residual, max_residual, explained)
+    return StrongChange(match.residual, max_residual, explained, refused_stretch)
 
 
 def _changed_as_a_whole(match: BaselineMatch, current: Measurement, mask: np.ndarray) -> str | None:

@@ -63,6 +63,7 @@ def test_a_mass_that_leaves_more_than_the_bound_is_reported_as_a_defect(light_ma
     as_json = result.as_json()
     assert as_json["strong_change"]["residual"] == pytest.approx(match.residual)
     assert as_json["strong_change"]["max_residual"] == GATEWAY.max_residual
+    assert as_json["strong_change"]["refused_stretch"] is None  # the stretch found (-0.09 %) was within the range
 
 
 def test_a_record_within_the_bound_carries_no_strong_change(light_mass):
@@ -132,7 +133,7 @@ def test_beyond_the_bound_a_defect_must_be_located_and_explain_what_is_left(axia
     match = BaselineMatch(0, 0.0, 0.12, baseline)
     judged = strong_change(match, [_defect(axial_mm)], explained, 0.05, 400.0)
     if verdict == "defect":
-        assert judged == StrongChange(0.12, 0.05, explained)
+        assert judged == StrongChange(0.12, 0.05, explained, None)
     else:
         assert isinstance(judged, str) and verdict in judged
     assert isinstance(strong_change(match, [], 0.0, 0.05, 400.0), str)
@@ -149,6 +150,7 @@ def test_a_stretch_a_strong_scatterer_buys_beyond_the_bound_does_not_blind_monit
     assert isinstance(match, BaselineMatch) and abs(match.stretch) > GATEWAY.max_compensated_stretch
     result = assess(current, [baseline], GATEWAY)
     assert result.valid_baseline and result.baseline.stretch == 0.0 and result.strong_change is not None
+    assert result.strong_change.refused_stretch == pytest.approx(match.stretch, abs=1e-4)  # -0.21 %
     best = result.defects[0]
     assert surface_distance_mm(best.axial_mm, best.angle_deg, LIGHT_MASS.axial_mm, LIGHT_MASS.angle_deg,
                                MID_WALL_MM) < 25.0  # measured 12 mm
