@@ -294,3 +294,42 @@ def test_a_decommissioned_node_is_left_alone_until_it_is_recommissioned(run_dir)
     finally:
         gw.close()
         mock.close()
+
+
+def test_a_defect_strong_enough_to_leave_a_fifth_of_the_record_is_damage_not_a_blind_node(run_dir):
+    # A notch of strength 2 (its scattered amplitude twice the incident at one wavelength) leaves 23 % of
+    # the record unexplained by any baseline, beyond the 5 % that a right reference leaves: before
+    # 2026-12-03 the gateway read it as no valid baseline (monitoring_blind, a warning).
+    (run_dir / "s.toml").write_text(scenario_node("strong", 300, defect=(200.0, 90.0, 30.0), strength=2.0))
+    mock, config, url = start_fleet(run_dir, run_dir / "s.toml", ["strong"])
+    gw = start_gateway(config, run_dir)
+    db = None
+    try:
+        def node_state():
+            d = open_database(url, upgrade=False)
+            try:
+                with d.session() as s:
+                    return s.get(NodeRow, "strong").state.value
+            finally:
+                d.dispose()
+
+        wait_until(lambda: node_state() == "damage", 150, 0.5, what="the strongly damaged node flagged")
+        db = open_database(url, upgrade=False)
+        with db.session() as s:
+            states = [c.to_state.value for c in s.scalars(
+                select(StateChangeRow).where(StateChangeRow.node_id == "strong").order_by(StateChangeRow.id))]
+            assert "no_valid_baseline" not in states, states
+            last = s.scalars(
+                select(DetectionRow).where(DetectionRow.node_id == "strong").order_by(DetectionRow.id.desc())
+            ).first()
+            assert last.abstain_reason is None and last.axial_mm is not None
+            arc = min(abs(last.angle_deg - 90.0), 360 - abs(last.angle_deg - 90.0)) * 360.03 / 360
+            assert ((last.axial_mm - 200.0) ** 2 + arc**2) ** 0.5 < 20.0, (last.axial_mm, last.angle_deg)
+            blind = s.scalars(select(EventRow).where(EventRow.node_id == "strong")).all()
+            assert not [e for e in blind if e.kind == "monitoring_blind"]
+        assert "strong change" in gw.stderr
+    finally:
+        if db is not None:
+            db.dispose()
+        gw.close()
+        mock.close()

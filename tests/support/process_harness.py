@@ -151,9 +151,11 @@ def scenario_node(
     *,
     defect: tuple[float, float, float] | None = None,
     temperature: dict | None = None,
+    strength: float | None = None,
 ) -> str:
     """One node of a mock-node scenario TOML on the paper's default pipe: ``defect`` is a notch
-    (axial_mm, angle_deg, appears_at_s); ``temperature`` the node's TemperatureSpec fields."""
+    (axial_mm, angle_deg, appears_at_s), of the paper's size or of ``strength`` (scattered / incident
+    amplitude); ``temperature`` the node's TemperatureSpec fields."""
     temperature = temperature or {"mean_c": 21.0, "jitter_c": 0.02}
     text = f'\n[[nodes]]\nnode_id = "{node_id}"\nseed = {seed}\n[nodes.temperature]\n'
     text += "".join(f"{k} = {_toml(v)}\n" for k, v in temperature.items())
@@ -161,6 +163,8 @@ def scenario_node(
         axial_mm, angle_deg, appears_at_s = defect
         text += (f'[[nodes.defects]]\nkind = "notch"\naxial_mm = {axial_mm!r}\nangle_deg = {angle_deg!r}\n'
                  f"appears_at_s = {appears_at_s!r}\n")
+        if strength is not None:
+            text += f"strength = {strength!r}\n"
     return text
 
 
