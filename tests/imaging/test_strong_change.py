@@ -1,8 +1,8 @@
 """A strong defect is damage, not "no valid baseline"; a wrong reference is still abstained on.
 
 The gateway abstains when even the best baseline leaves more than ``max_residual`` (5 %) of the
-record unexplained. A near-rigid or light mass leaves more than that on its own (full-wave dev set:
-8-31 %), so that bound alone made the strongest defects read as a blind node. Beyond the bound the
+record unexplained. A near-rigid or light mass leaves more than that on its own (full-wave sets:
+7-36 %), so that bound alone made the strongest defects read as a blind node. Beyond the bound the
 record is now imaged, and kept only if located defects explain a good part of what is left; a
 change common to every receiver's direct arrival (the ring's gain) or whose strongest part sits at a
 ring (the transducers, or another pipe's ends) is still abstained on. The physics here is the
