@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,6 +21,7 @@ from scipy import fft as sp_fft
 
 from imaging.arrivals import hann_burst
 from imaging.dimap import BaselineMismatch, check_compatible
+from imaging.health import MAX_COMMON_GAIN_CHANGE
 from imaging.measurement import Measurement
 from imaging.resample import Resampler
 
@@ -36,6 +37,7 @@ COARSE_STEPS = 21  # stretch grid of the first pass; a step of 0.05 % at +-0.5 %
 SEARCH_DECIMATION = 16  # the search compares every 16th sample (7 per period at 85 kHz, 10 MHz: see below)
 FINE_STEPS = 21  # second pass across the best coarse cell, per receiver
 MIN_EXPLAINED = 0.06  # a stretch must remove >= 6 % of the unstretched residual energy to be used
+MIN_GAIN_EXPLAINED = 0.5  # a common gain must remove >= half the in-band residual energy to be used
 TIE_TOLERANCE = 0.05  # residuals within 5 % of the best count as a tie: take the smallest |stretch|
 OBS_SHORTLIST = 3  # library entries (nearest by unstretched residual) that get the stretch search
 
@@ -47,15 +49,17 @@ class CompensationError(ValueError):
 @dataclass(frozen=True)
 class BaselineMatch:
     """The baseline chosen for a current record: its library ``index``, the ``stretch`` applied, the
-    remaining relative ``residual`` energy, and the stretched ``baseline`` itself."""
+    remaining relative ``residual`` energy, the stretched ``baseline`` itself, and the ``gain`` common
+    to the receivers it was scaled by (``with_common_gain``; 1.0: not scaled)."""
 
     index: int
     stretch: float
     residual: float
     baseline: Measurement
+    gain: float = 1.0
 
     def as_dict(self) -> dict:
-        return {"baseline_index": self.index, "stretch": self.stretch, "residual": self.residual}
+        return {"baseline_index": self.index, "stretch": self.stretch, "residual": self.residual, "gain": self.gain}
 
 
 @dataclass(frozen=True)
@@ -200,6 +204,18 @@ def _burst_power(fs_hz: float, excitation_hz: float, cycles: int, n: int) -> tup
     return n_fft, gain
 
 
+@functools.lru_cache(maxsize=16)
+def _band_weight(fs_hz: float, excitation_hz: float, cycles: int, n: int) -> tuple[int, slice, np.ndarray]:
+    """(FFT length, the bins where the burst's |B(f)|^2 exceeds 1e-8 of its peak, |B(f)|^2 there): the
+    band a gain is judged in (189 of 3376 bins at 85 kHz, 5 cycles, 10 MHz, 6000 samples)."""
+    n_fft, gain = _burst_power(fs_hz, excitation_hz, cycles, n)
+    inside = np.flatnonzero(gain > 1e-8 * gain.max())
+    band = slice(int(inside[0]), int(inside[-1]) + 1)
+    weight = gain[band].copy()
+    weight.flags.writeable = False
+    return n_fft, band, weight
+
+
 def _parabola_min(x: np.ndarray, y: np.ndarray) -> float:
     """Abscissa of the minimum of the parabola through the lowest sample and its neighbours."""
     k = int(np.argmin(y))
@@ -259,35 +275,95 @@ def select_compatible_baseline(
     shortlist: int | None = OBS_SHORTLIST,
     mismatch: str | None = None,
     keep_best: bool = False,
+    common_gain: bool = False,
 ) -> BaselineMatch | NoValidBaseline:
     """``select_baseline`` among the library entries ``compatible`` (indices already checked with
     ``check_compatible``); ``mismatch``: why the others are not, for the abstention. ``keep_best``:
     the best match even when it leaves more than ``max_residual`` (the caller judges it, with
-    ``unexplained``); the search is the same either way."""
+    ``unexplained``); the search is the same either way. ``common_gain``: each entry is first
+    scaled by its common gain where that explains the change (``common_gain_of``), so that a ring's
+    drift buys no stretch; ``with_common_gain`` is the same after the stretch."""
     if len(library) == 0:
         raise CompensationError("the baseline library is empty")
     compatible = list(compatible)
     if not compatible:
         return NoValidBaseline(None, math.inf, max_residual, f"no compatible baseline: {mismatch}")
     rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    gains: dict[int, float] = {}
+    entries: dict[int, Measurement] = {}
+
+    def entry(i: int) -> Measurement:
+        """Library entry ``i`` scaled by its common gain (computed once, for the entries searched)."""
+        if i not in entries:
+            gains[i] = common_gain_of(library[i], current, rx_mask) if common_gain else 1.0
+            entries[i] = library[i] if gains[i] == 1.0 else scaled(library[i], gains[i])
+        return entries[i]
+
     if not compensate:
         target = current.traces[rows].astype(np.float64)
-        return _choose(library, [(_relative_residual(target, library[i].traces[rows].astype(np.float64)), i, 0.0)
-                                 for i in compatible], {}, max_residual, keep_best)
+        return _choose(entries, [(_relative_residual(target, entry(i).traces[rows].astype(np.float64)), i, 0.0,
+                                  gains[i]) for i in compatible], {}, max_residual, keep_best)
     order = compatible
     if shortlist is not None and len(compatible) > shortlist:
         target = current.traces[rows, ::SEARCH_DECIMATION].astype(np.float64)
         plain = [_relative_residual(target, library[i].traces[rows, ::SEARCH_DECIMATION].astype(np.float64))
                  for i in compatible]
         order = [compatible[k] for k in np.argsort(plain, kind="stable")]
-    candidates: list[tuple[float, int, float]] = []
+    candidates: list[tuple[float, int, float, float]] = []
     moved: dict[int, np.ndarray] = {}  # stretched traces of each searched entry
     for rank, i in enumerate(order):
         if shortlist is not None and rank == shortlist and min(c[0] for c in candidates) <= max_residual:
             break
-        stretch, residual, moved[i] = _stretch_search(library[i], current, max_stretch=max_stretch, rx_mask=rx_mask)
-        candidates.append((residual, i, stretch))
-    return _choose(library, candidates, moved, max_residual, keep_best)
+        stretch, residual, moved[i] = _stretch_search(entry(i), current, max_stretch=max_stretch, rx_mask=rx_mask)
+        candidates.append((residual, i, stretch, gains[i]))
+    return _choose(entries, candidates, moved, max_residual, keep_best)
+
+
+def common_gain_of(baseline: Measurement, current: Measurement, rx_mask: np.ndarray | None = None) -> float:
+    """The one gain, common to the receivers ``rx_mask`` keeps, that best explains ``current`` from
+    ``baseline`` in the excitation's band; 1.0 unless it removes at least MIN_GAIN_EXPLAINED of the
+    residual's in-band energy and |ln gain| <= MAX_COMMON_GAIN_CHANGE.
+
+    A ring whose gain or coupling drifts as a whole scales every arrival alike; against the unscaled
+    baseline the map images that copy of the record as a scatterer at the Tx ring (full-wave dev set,
+    16-ring, defect-free, noisy: peak DI 0.025 for 1 % less gain, 0.11 for 5 %; threshold 0.02). A
+    defect lowers the coherent field too (its T(0,1) transmission loss) but also scatters new
+    arrivals, so a gain explains at most 0.36 of a defect's in-band residual (every full-wave pair of
+    the dev and own sets), and 0.78-1.0 of a 2-5 % drift's (0.41-0.44 for 1 % with absorbing ends and
+    noise, where it images below the threshold anyway). Judged in band like the stretch: the record's
+    noise above the band is no gain's. docs/imaging.md, "Common gain"."""
+    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    n_fft, band, weight = _band_weight(current.fs_hz, current.excitation_hz, current.cycles, current.n_samples)
+    b = sp_fft.rfft(baseline.traces[rows], n_fft, axis=-1)[:, band].astype(np.complex128)  # float32 transform
+    t = sp_fft.rfft(current.traces[rows], n_fft, axis=-1)[:, band].astype(np.complex128)
+    bb = float(np.einsum("rf,f->", np.abs(b) ** 2, weight))
+    tb = float(np.einsum("rf,f->", (t * b.conj()).real, weight))
+    tt = float(np.einsum("rf,f->", np.abs(t) ** 2, weight))
+    if not bb > 0:
+        return 1.0
+    gain = tb / bb
+    if not (gain > 0 and abs(math.log(gain)) <= MAX_COMMON_GAIN_CHANGE):
+        return 1.0
+    plain = tt - 2.0 * tb + bb  # in-band energy of current - baseline, and of current - gain x baseline
+    left = tt - gain * tb
+    return gain if left <= (1.0 - MIN_GAIN_EXPLAINED) * plain else 1.0
+
+
+def scaled(m: Measurement, gain: float) -> Measurement:
+    """A copy of ``m`` with every trace times ``gain``."""
+    return replace(m, traces=(m.traces.astype(np.float64) * gain).astype(np.float32))
+
+
+def with_common_gain(match: BaselineMatch, current: Measurement, rx_mask: np.ndarray | None = None) -> BaselineMatch:
+    """``match`` with its (stretched) baseline scaled by ``common_gain_of`` it, the residual recomputed
+    (``match`` itself when that gain is 1): a drift found once the stretch is undone."""
+    gain = common_gain_of(match.baseline, current, rx_mask)
+    if gain == 1.0:
+        return match
+    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    baseline = scaled(match.baseline, gain)
+    residual = _relative_residual(current.traces[rows].astype(np.float64), baseline.traces[rows].astype(np.float64))
+    return BaselineMatch(match.index, match.stretch, residual, baseline, match.gain * gain)
 
 
 def as_recorded(library: Sequence[Measurement], index: int, current: Measurement,
@@ -309,16 +385,17 @@ def unexplained(match: BaselineMatch, max_residual: float, why: str = "") -> NoV
     )
 
 
-def _choose(library: Sequence[Measurement], candidates: list[tuple[float, int, float]], moved: dict[int, np.ndarray],
-            max_residual: float, keep_best: bool = False) -> BaselineMatch | NoValidBaseline:
-    """The best (residual, index, stretch) candidate as a match, or the abstention."""
+def _choose(entries: Mapping[int, Measurement], candidates: list[tuple[float, int, float, float]],
+            moved: dict[int, np.ndarray], max_residual: float, keep_best: bool = False) -> BaselineMatch | NoValidBaseline:
+    """The best (residual, index, stretch, gain) candidate as a match, or the abstention; ``entries``: the
+    library entries by index, as searched (scaled by their gain)."""
     # Among near-equal matches prefer the least stretch: the closest temperature also matches
     # what a stretch cannot model (amplitude, mode shape changes with temperature).
     lowest = min(c[0] for c in candidates)
     ties = [c for c in candidates if c[0] <= lowest * (1.0 + TIE_TOLERANCE)]
-    residual, index, stretch = min(ties, key=lambda c: (abs(c[2]), c[0]))
-    chosen = library[index] if stretch == 0.0 else replace(library[index], traces=moved[index])
-    match = BaselineMatch(index, stretch, residual, chosen)
+    residual, index, stretch, gain = min(ties, key=lambda c: (abs(c[2]), c[0]))
+    chosen = entries[index] if stretch == 0.0 else replace(entries[index], traces=moved[index])
+    match = BaselineMatch(index, stretch, residual, chosen, gain)
     if not residual <= max_residual and not keep_best:
         return unexplained(match, max_residual)
     return match

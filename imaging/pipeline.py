@@ -28,6 +28,7 @@ from imaging.compensation import (
     as_recorded,
     select_compatible_baseline,
     unexplained,
+    with_common_gain,
 )
 from imaging.detection import default_threshold
 from imaging.dimap import BaselineMismatch, DIMap, check_compatible, paper_di_map, windowed_energy
@@ -68,6 +69,7 @@ class AssessSettings:
     method: Literal["multipath", "paper"] = "multipath"
     feature: Literal["analytic", "envelope", "squared"] = "analytic"
     compensate: bool = True
+    common_gain: bool = True  # scale the matched baseline by the receivers' common gain where it explains the change
     max_stretch: float = DEFAULT_MAX_STRETCH
     max_residual: float = DEFAULT_MAX_RESIDUAL
     # None: image whatever the stretch (a one-off analysis of two files); the gateway sets
@@ -295,7 +297,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
     match = select_compatible_baseline(
         baselines, compatible, current, compensate=settings.compensate, max_stretch=settings.max_stretch,
         max_residual=settings.max_residual, rx_mask=mask, mismatch=next((w for w in mismatches if w), None),
-        keep_best=True,
+        keep_best=True, common_gain=settings.common_gain,
     )
     limit = settings.max_compensated_stretch
     beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged
@@ -305,6 +307,8 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         # recorded stands in if it passes the strong-change tests, else the record is abstained on.
         beyond, refused = _too_far_from_the_library(match, settings), match.stretch
         match = as_recorded(baselines, match.index, current, mask) if settings.method == "multipath" else beyond
+    if isinstance(match, BaselineMatch) and settings.common_gain and match.stretch != 0.0 and match.gain == 1.0:
+        match = with_common_gain(match, current, mask)  # a drift hidden by the stretch until it was undone
     if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
             settings.method == "paper" or not math.isfinite(match.residual)):
         match = unexplained(match, settings.max_residual)  # only the multipath map can tell a defect from it
