@@ -97,6 +97,12 @@ class GatewayCollector(Collector):
         retries = CounterMetricFamily("pipesentry_gateway_node_retries",
                                       "commands and chunk requests sent again (lost, late or corrupt replies)",
                                       labels=node)
+        gain = GaugeMetricFamily("pipesentry_node_baseline_gain",
+                                 "the receivers' common gain the last imaged record's baseline was scaled by "
+                                 "(1: none; the ring's drift since that baseline)", labels=node)
+        stretch = GaugeMetricFamily("pipesentry_node_baseline_stretch",
+                                    "the time-stretch the last imaged record's baseline was matched with "
+                                    "(about 1e-4 per degC from that baseline's temperature)", labels=node)
         for worker in self.nodes:
             name = worker.settings.id
             counters = worker.counters
@@ -108,7 +114,10 @@ class GatewayCollector(Collector):
             transfers.add_metric([name], counters.transfer_errors)
             timeouts.add_metric([name], counters.timeouts)
             retries.add_metric([name], worker.retries_total())
-        yield from (interval, cycles, failed, transfers, timeouts, retries)
+            if worker.last_match is not None:
+                gain.add_metric([name], worker.last_match[0])
+                stretch.add_metric([name], worker.last_match[1])
+        yield from (interval, cycles, failed, transfers, timeouts, retries, gain, stretch)
 
     def _sink_metrics(self) -> Iterator[Metric]:
         sink = ["sink"]

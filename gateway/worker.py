@@ -140,6 +140,9 @@ class NodeWorker:
         self.alerting = alerting or AlertingSettings()
         self.client_factory = client_factory
         self.counters = NodeCounters()
+        # (common gain, stretch) the last imaged record's baseline was matched with: the ring's drift and
+        # the temperature as the imaging saw them, for the metrics thread (None until a record is imaged)
+        self.last_match: tuple[float, float] | None = None
         self.conn: Connection | None = None
         self.flag: FlagState | None = None  # the flagger's memory; None: restore it from storage first
         self.library = BaselineLibrary()
@@ -389,6 +392,8 @@ class NodeWorker:
                 assessment = abstained(imaging, mismatch)
             else:
                 assessment = assess(acquisition.measurement, list(inputs.library), imaging)
+            if assessment.baseline is not None:
+                self.last_match = (assessment.baseline.gain, assessment.baseline.stretch)
             _log_assessment(assessment)
             verdict = decide_monitoring(
                 self.settings, history, inputs, assessment, temperature_c=acquisition.temperature_c, now=self.clock.wall()

@@ -72,6 +72,10 @@ def test_the_gateway_counts_cycles_retries_failures_and_deliveries_on_its_metric
                            what="cycles, a retry and a delivery counted")
         assert value(first, "pipesentry_node_interval_seconds", node="pipe-1") == 0.3
         assert value(first, "pipesentry_node_interval_seconds", node="pipe-2") == 45.0
+        # pipe-1's ring has not drifted (the mock's gain is steady); pipe-2 has imaged nothing
+        assert value(first, "pipesentry_node_baseline_gain", node="pipe-1") == pytest.approx(1.0, abs=0.02)
+        assert abs(value(first, "pipesentry_node_baseline_stretch", node="pipe-1")) < 1e-3
+        assert value(first, "pipesentry_node_baseline_gain", node="pipe-2") is None
         assert (value(first, "pipesentry_gateway_node_cycle_failures_total", node="pipe-2", reason="port") or 0) >= 1
         assert value(first, "pipesentry_gateway_node_cycles_total", node="pipe-2") == 0
         assert value(first, "pipesentry_gateway_alert_attempts_total", sink="hook") >= 2
