@@ -307,8 +307,10 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         # recorded stands in if it passes the strong-change tests, else the record is abstained on.
         beyond, refused = _too_far_from_the_library(match, settings), match.stretch
         match = as_recorded(baselines, match.index, current, mask) if settings.method == "multipath" else beyond
-    if isinstance(match, BaselineMatch) and settings.common_gain and match.stretch != 0.0 and match.gain == 1.0:
-        match = with_common_gain(match, current, mask)  # a drift hidden by the stretch until it was undone
+    if (isinstance(match, BaselineMatch) and settings.common_gain and match.gain == 1.0
+            and (match.stretch != 0.0 or beyond is not None)):
+        # a drift hidden by the stretch until it was undone, or beside the entry as recorded
+        match = with_common_gain(match, current, mask)
     if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
             settings.method == "paper" or not math.isfinite(match.residual)):
         match = unexplained(match, settings.max_residual)  # only the multipath map can tell a defect from it
