@@ -58,6 +58,28 @@ def counts(db_url: str) -> dict[str, int]:
         db.dispose()
 
 
+def node_state(db_url: str, node_id: str) -> str:
+    """The node's stored state, read through a fresh connection."""
+    db = open_database(db_url, upgrade=False)
+    try:
+        with db.session() as s:
+            return s.get(NodeRow, node_id).state.value
+    finally:
+        db.dispose()
+
+
+def latest_detection(session, node_id: str) -> DetectionRow:
+    return session.scalars(
+        select(DetectionRow).where(DetectionRow.node_id == node_id).order_by(DetectionRow.id.desc())).first()
+
+
+def assert_near_the_notch(detection: DetectionRow) -> None:
+    """The detection's position lies within 20 mm of the scenario's notch (200 mm, 90 deg)."""
+    assert detection.axial_mm is not None
+    arc = min(abs(detection.angle_deg - 90.0), 360 - abs(detection.angle_deg - 90.0)) * 360.03 / 360
+    assert ((detection.axial_mm - 200.0) ** 2 + arc**2) ** 0.5 < 20.0, (detection.axial_mm, detection.angle_deg)
+
+
 def start_fleet(run_dir: Path, scenario: Path, node_ids: list[str], *mock_args: str, **node_kw):
     links = run_dir / "links"
     mock = start_mock_nodes(scenario, links, run_dir, *mock_args)
@@ -114,23 +136,10 @@ def test_appearing_defect_is_flagged_near_its_true_position_and_quiet_node_is_no
     gw = start_gateway(config, run_dir)
     db = None
     try:
-        def damaged_state():
-            d = open_database(url, upgrade=False)
-            try:
-                with d.session() as s:
-                    return s.get(NodeRow, "damaged").state.value == "damage"
-            finally:
-                d.dispose()
-
-        wait_until(damaged_state, 150, 0.5, what="the damaged node flagged")
+        wait_until(lambda: node_state(url, "damaged") == "damage", 150, 0.5, what="the damaged node flagged")
         db = open_database(url, upgrade=False)
         with db.session() as s:
-            last = s.scalars(
-                select(DetectionRow).where(DetectionRow.node_id == "damaged").order_by(DetectionRow.id.desc())
-            ).first()
-            assert last.axial_mm is not None
-            arc = min(abs(last.angle_deg - 90.0), 360 - abs(last.angle_deg - 90.0)) * 360.03 / 360
-            assert ((last.axial_mm - 200.0) ** 2 + arc**2) ** 0.5 < 20.0, (last.axial_mm, last.angle_deg)
+            assert_near_the_notch(latest_detection(s, "damaged"))
             changes = [c.to_state.value for c in s.scalars(
                 select(StateChangeRow).where(StateChangeRow.node_id == "damaged").order_by(StateChangeRow.id))]
             assert "damage" in changes
@@ -305,26 +314,15 @@ def test_a_defect_strong_enough_to_leave_a_fifth_of_the_record_is_damage_not_a_b
     gw = start_gateway(config, run_dir)
     db = None
     try:
-        def node_state():
-            d = open_database(url, upgrade=False)
-            try:
-                with d.session() as s:
-                    return s.get(NodeRow, "strong").state.value
-            finally:
-                d.dispose()
-
-        wait_until(lambda: node_state() == "damage", 150, 0.5, what="the strongly damaged node flagged")
+        wait_until(lambda: node_state(url, "strong") == "damage", 150, 0.5, what="the strongly damaged node flagged")
         db = open_database(url, upgrade=False)
         with db.session() as s:
             states = [c.to_state.value for c in s.scalars(
                 select(StateChangeRow).where(StateChangeRow.node_id == "strong").order_by(StateChangeRow.id))]
             assert "no_valid_baseline" not in states, states
-            last = s.scalars(
-                select(DetectionRow).where(DetectionRow.node_id == "strong").order_by(DetectionRow.id.desc())
-            ).first()
-            assert last.abstain_reason is None and last.axial_mm is not None
-            arc = min(abs(last.angle_deg - 90.0), 360 - abs(last.angle_deg - 90.0)) * 360.03 / 360
-            assert ((last.axial_mm - 200.0) ** 2 + arc**2) ** 0.5 < 20.0, (last.axial_mm, last.angle_deg)
+            last = latest_detection(s, "strong")
+            assert last.abstain_reason is None
+            assert_near_the_notch(last)
             blind = s.scalars(select(EventRow).where(EventRow.node_id == "strong")).all()
             assert not [e for e in blind if e.kind == "monitoring_blind"]
         assert "strong change" in gw.stderr
