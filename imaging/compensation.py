@@ -21,7 +21,7 @@ from scipy import fft as sp_fft
 
 from imaging.arrivals import hann_burst
 from imaging.dimap import BaselineMismatch, check_compatible
-from imaging.health import MAX_COMMON_GAIN_CHANGE
+from imaging.health import MAX_COMMON_GAIN_CHANGE, receiver_rows
 from imaging.measurement import Measurement
 from imaging.resample import Resampler
 
@@ -140,7 +140,7 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     receivers, float32)."""
     if not (0 <= max_stretch < 0.1):
         raise CompensationError(f"max_stretch must be in [0, 0.1), got {max_stretch}")
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    rows = receiver_rows(current.n_rx, rx_mask)
     resampler = Resampler(baseline)
     times = _sample_times_s(current)
     target = current.traces[rows].astype(np.float64)
@@ -288,7 +288,7 @@ def select_compatible_baseline(
     compatible = list(compatible)
     if not compatible:
         return NoValidBaseline(None, math.inf, max_residual, f"no compatible baseline: {mismatch}")
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    rows = receiver_rows(current.n_rx, rx_mask)
     gains: dict[int, float] = {}
     entries: dict[int, Measurement] = {}
 
@@ -332,7 +332,7 @@ def common_gain_of(baseline: Measurement, current: Measurement, rx_mask: np.ndar
     the dev and own sets), and 0.78-1.0 of a 2-5 % drift's (0.41-0.44 for 1 % with absorbing ends and
     noise, where it images below the threshold anyway). Judged in band like the stretch: the record's
     noise above the band is no gain's. docs/imaging.md, "Common gain"."""
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    rows = receiver_rows(current.n_rx, rx_mask)
     n_fft, band, weight = _band_weight(current.fs_hz, current.excitation_hz, current.cycles, current.n_samples)
     b = sp_fft.rfft(baseline.traces[rows], n_fft, axis=-1)[:, band].astype(np.complex128)  # float32 transform
     t = sp_fft.rfft(current.traces[rows], n_fft, axis=-1)[:, band].astype(np.complex128)
@@ -360,7 +360,7 @@ def with_common_gain(match: BaselineMatch, current: Measurement, rx_mask: np.nda
     gain = common_gain_of(match.baseline, current, rx_mask)
     if gain == 1.0:
         return match
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    rows = receiver_rows(current.n_rx, rx_mask)
     baseline = scaled(match.baseline, gain)
     residual = _relative_residual(current.traces[rows].astype(np.float64), baseline.traces[rows].astype(np.float64))
     return BaselineMatch(match.index, match.stretch, residual, baseline, match.gain * gain)
@@ -370,7 +370,7 @@ def as_recorded(library: Sequence[Measurement], index: int, current: Measurement
                 rx_mask: np.ndarray | None = None) -> BaselineMatch:
     """Library entry ``index`` as the match of ``current`` without any stretch (the receivers ``rx_mask``
     keeps give the residual): what is judged when the stretch the search found cannot be trusted."""
-    rows = np.ones(current.n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    rows = receiver_rows(current.n_rx, rx_mask)
     residual = _relative_residual(current.traces[rows].astype(np.float64), library[index].traces[rows].astype(np.float64))
     return BaselineMatch(index, 0.0, residual, library[index])
 

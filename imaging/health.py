@@ -105,11 +105,15 @@ def common_gain_change(baseline: Measurement, current: Measurement, mask: np.nda
     moves single receivers by -0.33..+0.17 but the median by 0.106 at most; a 25 % gain change gives
     0.24-0.30 on its own, 0.18-0.30 beside a strong defect (whose transmission loss offsets part of it)."""
     base, cur = direct_arrival(baseline), direct_arrival(current)
-    keep = np.ones(current.n_rx, bool) if mask is None else np.asarray(mask, bool)
-    keep &= (base.amplitude > 0) & (cur.amplitude > 0)
+    keep = receiver_rows(current.n_rx, mask) & (base.amplitude > 0) & (cur.amplitude > 0)
     if not keep.any():
         return 0.0
     return float(np.median(np.log(cur.amplitude[keep] / base.amplitude[keep])))
+
+
+def receiver_rows(n_rx: int, rx_mask: np.ndarray | None) -> np.ndarray:
+    """Boolean [n_rx]: the receivers ``rx_mask`` keeps (all when None)."""
+    return np.ones(n_rx, bool) if rx_mask is None else np.asarray(rx_mask, bool)
 
 
 def healthy_mask(n_rx: int, faults: list[SensorFault]) -> np.ndarray:

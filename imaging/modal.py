@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from imaging.health import receiver_rows
+
 
 class ModalError(ValueError):
     """Bad arguments to the modal filter."""
@@ -55,7 +57,7 @@ def remove_low_orders(residual: np.ndarray, rx_angles_deg: np.ndarray, max_order
         raise ModalError("residual must be [n_rx, n_samples]")
     if max_order < 0:
         raise ModalError(f"max_order must be >= 0, got {max_order}")
-    mask = np.ones(residual.shape[0], bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    mask = receiver_rows(residual.shape[0], rx_mask)
     basis = order_basis(rx_angles_deg, max_order)[mask]
     if basis.shape[0] < basis.shape[1] + 1:
         return residual.copy()
@@ -78,7 +80,7 @@ def axisymmetric_fraction(residual: np.ndarray, rx_mask: np.ndarray | None = Non
     few receivers keep more of any field in their mean); a baseline of the same pipe with other ends
     0.80-1.00."""
     residual = np.asarray(residual, dtype=np.float64)
-    mask = np.ones(residual.shape[0], bool) if rx_mask is None else np.asarray(rx_mask, bool)
+    mask = receiver_rows(residual.shape[0], rx_mask)
     rows = residual[mask]
     energy = float(np.sum(rows * rows))
     if rows.shape[0] == 0 or not energy > 0:

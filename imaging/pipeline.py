@@ -256,11 +256,10 @@ def scene_for(match: BaselineMatch, entry: Measurement, current: Measurement, gr
                     reference_amplitude_v=reference_amplitude(entry), rx_mask=mask, project=project)
 
 
-def _multipath(match: BaselineMatch, current: Measurement, scene: Scene, settings: AssessSettings,
+def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, settings: AssessSettings,
                threshold: float, judge: bool) -> tuple[DIMap, Estimate, list[Defect], float]:
     """(first map, peak, defects, the fraction of the residual the located defects explain: computed
-    only when ``judge``, else NaN)."""
-    residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
+    only when ``judge``, else NaN) of ``residual``, the matched baseline less ``current``."""
     if scene.project is not None:
         residual = scene.project(residual)
     first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
@@ -322,11 +321,12 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         di_map, peak, defects = _paper(match, current, grid, mask, current.circumference_mm, threshold)
     else:
         over = beyond is not None or not match.residual <= settings.max_residual
-        why = _changed_as_a_whole(match, current, mask) if over else None
+        residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
+        why = _changed_as_a_whole(match, residual, current, mask) if over else None
         if why is not None:
             return _abstain(settings, threshold, _refused(match, beyond, settings, why), faults, start)
         scene = scene_for(match, baselines[match.index], current, grid, mask, settings)
-        di_map, peak, defects, explained = _multipath(match, current, scene, settings, threshold, over)
+        di_map, peak, defects, explained = _multipath(residual, current, scene, settings, threshold, over)
         if over:
             judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm,
                                    refused)
@@ -360,15 +360,15 @@ def strong_change(match: BaselineMatch, defects: list[Defect], explained: float,
     return StrongChange(match.residual, max_residual, explained, refused_stretch)
 
 
-def _changed_as_a_whole(match: BaselineMatch, current: Measurement, mask: np.ndarray) -> str | None:
-    """Why what ``match`` leaves of ``current`` is a change of the ring or of the whole pipe, not of a point
-    between the rings (None: it may be a defect's)."""
+def _changed_as_a_whole(match: BaselineMatch, residual: np.ndarray, current: Measurement,
+                        mask: np.ndarray) -> str | None:
+    """Why what ``match`` leaves of ``current`` (``residual``) is a change of the ring or of the whole pipe,
+    not of a point between the rings (None: it may be a defect's)."""
     gain = common_gain_change(match.baseline, current, mask)
     if abs(gain) > MAX_COMMON_GAIN_CHANGE:
         return (f"the direct arrival is {math.expm1(gain):+.0%} on most receivers alike: the transducers' gain or "
                 "coupling changed, not the pipe (a defect moves only the receivers in its shadow); take a new "
                 "baseline once the ring is checked and the pipe known sound")
-    residual = match.baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     common = axisymmetric_fraction(residual, mask)
     if common > MAX_AXISYMMETRIC:
         return (f"{common:.0%} of it is the same on every receiver: the pipe's ends or what lies beyond the rings "
