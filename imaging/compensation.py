@@ -1,8 +1,9 @@
 """Temperature compensation: optimal baseline selection (OBS) and baseline signal stretch (BSS).
 
 Warming slows the T(0,1) wave (about 1e-4 per degC in steel), so every arrival of the
-current record comes a factor (1 + stretch) later than in a baseline taken colder:
-current(t) ~ baseline(t / (1 + stretch)), t counted from the excitation start. BSS finds that
+current record comes a factor (1 + stretch) later than in a baseline taken colder, t counted
+from the excitation start; the excitation burst itself is what it was, so the baseline is
+stretched as the medium's response, not as a whole record (imaging/thermal.py). BSS finds that
 factor by minimising the relative residual energy ||current - stretched||^2 / ||current||^2
 over a bounded range (coarse grid, then a per-receiver refinement and their median); OBS does it for every
 baseline of a library and keeps the best. When even the best leaves more than
@@ -23,14 +24,16 @@ from imaging.arrivals import hann_burst
 from imaging.dimap import BaselineMismatch, check_compatible
 from imaging.health import MAX_COMMON_GAIN_CHANGE, receiver_rows
 from imaging.measurement import Measurement
-from imaging.resample import Resampler
+from imaging.thermal import thermal_stretch
 
 DEFAULT_MAX_STRETCH = 0.005  # +-0.5 %: about +-50 degC of velocity change in steel
 DEFAULT_MAX_RESIDUAL = 0.05  # relative residual energy above which no baseline is trusted
-# A stretch undoes a uniform velocity change, not the unstretched excitation pulse nor what else
-# temperature changes, so the defect-free DI grows with |stretch| (mock physics, reflecting ends,
-# default noise: peak 0.0096 at 0.09 %, 0.0177 at 0.18 %, 0.026 at 0.28 %, against the default
-# threshold 0.02). Past this bound a record is not imaged but abstained on (assess()).
+# Past this bound a record is not imaged but abstained on (assess()). Stretching the whole record
+# had left a defect-free DI growing with |stretch| (FDTD 8-ring, free ends: 0.026 at +16 degC,
+# threshold 0.02); with the medium's response stretched and the burst kept it stays at the noise
+# floor to +-30 degC on both physics (bench/bench_thermal.py: <= 0.006). The bound now stands for
+# what neither physics models: a temperature that is not uniform along the pipe, the transducers'
+# and couplant's own temperature response, thermal expansion.
 DEFAULT_MAX_COMPENSATED_STRETCH = 0.0015  # 0.15 %: about 15 degC in steel
 STRETCH_PER_DEGC = 1.0e-4  # T(0,1) in steel: shear velocity -1e-4 per degC (the mock's model too)
 COARSE_STEPS = 21  # stretch grid of the first pass; a step of 0.05 % at +-0.5 %
@@ -84,18 +87,14 @@ def _sample_times_s(m: Measurement) -> np.ndarray:
     return m.t0_s + np.arange(m.n_samples) / m.fs_hz
 
 
-def _evaluate(resampler: Resampler, times_s: np.ndarray, stretch: float | np.ndarray) -> np.ndarray:
-    """Baseline at t / (1 + stretch); zero outside the recorded interval (no extrapolation)."""
-    return resampler(times_s / (1.0 + stretch))
-
-
 def stretch_traces(m: Measurement, stretch: float) -> np.ndarray:
-    """The traces time-stretched by (1 + stretch) about the excitation start, cubic-spline resampled."""
-    return _evaluate(Resampler(m), _sample_times_s(m), stretch)
+    """The traces as the pipe would give them with every wave (1 + stretch) slower: the medium's
+    response stretched about the excitation start, the burst not (imaging/thermal.py)."""
+    return thermal_stretch(m)(_sample_times_s(m), stretch)
 
 
 def stretched(m: Measurement, stretch: float) -> Measurement:
-    """A copy of ``m`` as if recorded with every arrival (1 + stretch) times later."""
+    """A copy of ``m`` as if recorded with every arrival (1 + stretch) times later, the same burst."""
     if stretch == 0.0:
         return m
     return replace(m, traces=stretch_traces(m, stretch).astype(np.float32))
@@ -135,13 +134,17 @@ def best_stretch(
 
 
 def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch: float,
-                    rx_mask: np.ndarray | None) -> tuple[float, float, np.ndarray]:
-    """``best_stretch`` of a compatible pair, and the baseline's traces stretched by the answer (all
-    receivers, float32)."""
+                    rx_mask: np.ndarray | None, gain: float = 1.0) -> tuple[float, float, np.ndarray]:
+    """``best_stretch`` of a compatible pair, the baseline scaled by ``gain``, and the baseline's traces
+    (so scaled) stretched by the answer (all receivers, float32)."""
     if not (0 <= max_stretch < 0.1):
         raise CompensationError(f"max_stretch must be in [0, 0.1), got {max_stretch}")
     rows = receiver_rows(current.n_rx, rx_mask)
-    resampler = Resampler(baseline)
+    model = thermal_stretch(baseline)  # linear in the traces: the scaled baseline's is ``gain`` times it
+
+    def warmed(times_s: np.ndarray, stretch: float | np.ndarray) -> np.ndarray:
+        values = model(times_s, stretch)
+        return values if gain == 1.0 else values * gain
     times = _sample_times_s(current)
     target = current.traces[rows].astype(np.float64)
     if max_stretch > 0:
@@ -149,8 +152,10 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
         target_sub = target[:, ::SEARCH_DECIMATION]
 
         def per_rx_cost(stretches: np.ndarray) -> np.ndarray:
-            """Residual energy [n_stretches, n_rx] of each candidate, all evaluated at once."""
-            diff = target_sub[None] - _evaluate(resampler, sub[None, :], stretches[:, None])[rows].transpose(1, 0, 2)
+            """Residual energy [n_stretches, n_rx] of each candidate, all evaluated at once; samples
+            the stretched baseline does not cover count for nothing."""
+            diff = target_sub[None] - warmed(sub[None, :], stretches[:, None])[rows].transpose(1, 0, 2)
+            diff *= model.recorded(sub[None, :], stretches[:, None])[:, None, :]
             return np.sum(diff * diff, axis=2)
 
         coarse = np.linspace(-max_stretch, max_stretch, COARSE_STEPS)
@@ -164,10 +169,18 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     else:
         best = 0.0
     plain = baseline.traces.astype(np.float64)
+    as_recorded_traces = baseline.traces
+    if gain != 1.0:
+        as_recorded_traces = (plain * gain).astype(np.float32)  # what ``scaled`` gives
+        plain = as_recorded_traces.astype(np.float64)
     plain_residual = _relative_residual(target, plain[rows])
     if best == 0.0:
-        return 0.0, plain_residual, baseline.traces
-    moved = _evaluate(resampler, times, best)
+        return 0.0, plain_residual, as_recorded_traces
+    moved = warmed(times, best)
+    # Where the baseline has no sample (a colder record's end holds what arrived after the
+    # baseline's), the current is its own reference: no change is claimed there.
+    uncovered = ~model.recorded(times, best)
+    moved[:, uncovered] = current.traces[:, uncovered]
     stretched_residual = _relative_residual(target, moved[rows])
     # Stretch only when it explains a good part of the difference: a defect's echo right after
     # the direct arrival also "prefers" a tiny delay, and stretching it away would bias the map.
@@ -179,7 +192,7 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     np.subtract(target, moved[rows], out=differences[1])
     plain_band, stretched_band = _in_band_energy(differences, current)
     if not stretched_band <= (1.0 - MIN_EXPLAINED) * plain_band:
-        return 0.0, plain_residual, baseline.traces
+        return 0.0, plain_residual, as_recorded_traces
     return best, stretched_residual, moved.astype(np.float32)
 
 
@@ -314,7 +327,9 @@ def select_compatible_baseline(
     for rank, i in enumerate(order):
         if shortlist is not None and rank == shortlist and min(c[0] for c in candidates) <= max_residual:
             break
-        stretch, residual, moved[i] = _stretch_search(entry(i), current, max_stretch=max_stretch, rx_mask=rx_mask)
+        entry(i)  # its gain
+        stretch, residual, moved[i] = _stretch_search(library[i], current, max_stretch=max_stretch, rx_mask=rx_mask,
+                                                      gain=gains[i])
         candidates.append((residual, i, stretch, gains[i]))
     return _choose(entries, candidates, moved, max_residual, keep_best)
 

@@ -84,8 +84,17 @@ class Resampler:
     (module docstring). ``rows``: only these traces."""
 
     def __init__(self, m: Measurement, rows: np.ndarray | None = None) -> None:
-        traces = m.traces if rows is None else m.traces[rows]
-        coef = ndimage.spline_filter1d(traces.astype(np.float64), order=3, axis=1, mode="mirror")
+        self._fit(m.traces if rows is None else m.traces[rows], m.t0_s, m.fs_hz)
+
+    @classmethod
+    def of(cls, traces: np.ndarray, t0_s: float, fs_hz: float) -> Resampler:
+        """The interpolation of ``traces`` [n_rows, n] sampled at t0_s + k / fs_hz."""
+        resampler = cls.__new__(cls)
+        resampler._fit(traces, t0_s, fs_hz)
+        return resampler
+
+    def _fit(self, traces: np.ndarray, t0_s: float, fs_hz: float) -> None:
+        coef = ndimage.spline_filter1d(np.asarray(traces, dtype=np.float64), order=3, axis=1, mode="mirror")
         n = coef.shape[1]
         # Time-major (a value gathers 4 rows of n_rx), mirror-extended one coefficient before and
         # two after: indices -1, n, n+1 are 1, n-2, n-3.
@@ -93,7 +102,7 @@ class Resampler:
                              axis=1)
         self._coef = np.ascontiguousarray(ext.T)
         self._coef.setflags(write=False)
-        self.t0_s, self.fs_hz, self.n = m.t0_s, m.fs_hz, n
+        self.t0_s, self.fs_hz, self.n = t0_s, fs_hz, n
 
     def __call__(self, times_s: np.ndarray, *, compiled: bool = True) -> np.ndarray:
         """Values [n_rows, *times_s.shape]; zero outside the recorded interval (no extrapolation).

@@ -10,11 +10,11 @@ from test_imaging_multipath import random_problem
 import imaging.multipath as multipath
 from imaging import gather
 from imaging.arrivals import analytic_matched, analytic_signal, hann_burst, matched_filter, reference_amplitude
-from imaging.compensation import Resampler
 from imaging.echofit import fit_echoes, fit_smooth_echoes, literal_fit_echoes, literal_fit_smooth_echoes
 from imaging.grid import Grid
 from imaging.multidefect import find_defects
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
+from imaging.resample import Resampler
 from imaging.scene import Scene
 from tests.support.synthetic import baseline_and_scatterers, measurement
 
