@@ -22,7 +22,6 @@ amplified. Pure functions on arrays; the stretch is applied by cubic B-spline re
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 
 import numpy as np
@@ -68,6 +67,14 @@ def slope_traces(traces: np.ndarray, m: Measurement) -> np.ndarray:
     return sp_fft.irfft(spectrum * response, n_fft, axis=-1)[..., :n]
 
 
+def recorded(at_s: np.ndarray, m: Measurement) -> np.ndarray:
+    """Where ``m`` has data at the times ``at_s`` a stretched record reads it at (t / (1 + stretch)):
+    a colder pipe's record ends on what arrived after the baseline's end, a warmer one's may begin
+    before the baseline's start; there a stretched baseline is zero and means nothing."""
+    at_s = np.asarray(at_s, dtype=np.float64)
+    return (at_s >= m.t0_s) & (at_s <= m.t0_s + (m.n_samples - 1) / m.fs_hz)
+
+
 class ThermalStretch:
     """``m``'s traces (the rows ``rows`` keeps) as the same pipe would record them with every wave
     (1 + stretch) slower, at any times: values [n_rows, *times.shape]; zero outside the recorded
@@ -77,14 +84,6 @@ class ThermalStretch:
         traces = (m.traces if rows is None else m.traces[rows]).astype(np.float64)
         self.n_rows = traces.shape[0]
         self._resampler = Resampler.of(np.concatenate([traces, slope_traces(traces, m)]), m.t0_s, m.fs_hz)
-        self._first_s, self._last_s = m.t0_s, m.t0_s + (m.n_samples - 1) / m.fs_hz
-
-    def recorded(self, times_s: np.ndarray, stretch: float | np.ndarray) -> np.ndarray:
-        """Where the stretched record has data (bool, broadcast of ``times_s`` and ``stretch``): a
-        colder pipe's record ends on what arrived after the baseline's end, a warmer one's may begin
-        before the baseline's start; there the values are zero and mean nothing."""
-        at = np.asarray(times_s, dtype=np.float64) / (1.0 + np.asarray(stretch, dtype=np.float64))
-        return (at >= self._first_s) & (at <= self._last_s)
 
     def __call__(self, times_s: np.ndarray, stretch: float | np.ndarray) -> np.ndarray:
         stretch = np.asarray(stretch, dtype=np.float64)
@@ -92,14 +91,4 @@ class ThermalStretch:
         return values[:self.n_rows] + stretch * values[self.n_rows:]
 
 
-def thermal_stretch(m: Measurement) -> ThermalStretch:
-    """``ThermalStretch(m)`` derived once per record and kept with it (``Measurement.derived``): a node's
-    baselines are stretched against every measurement. The key is a digest of the traces and every
-    field the model depends on, so traces changed in place are fitted again."""
-    traces = np.ascontiguousarray(m.traces)
-    key = (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
-           m.fs_hz, m.t0_s, m.excitation_hz, m.cycles)
-    return m.derived("thermal_stretch", key, lambda: ThermalStretch(m))
-
-
-__all__ = ["BAND_FLOOR", "ThermalStretch", "burst_time_derivative", "slope_traces", "thermal_stretch"]
+__all__ = ["BAND_FLOOR", "ThermalStretch", "burst_time_derivative", "recorded", "slope_traces"]

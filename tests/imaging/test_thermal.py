@@ -5,6 +5,8 @@ The baseline is compensated by stretching the medium's response, not the whole r
 the project's FDTD (fullwave/), whose temperature is a change of the wall's shear modulus and
 shares no code with the imaging.
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from imaging.arrivals import hann_burst
 from imaging.compensation import BaselineMatch, best_stretch, select_baseline, stretch_traces
 from imaging.pipeline import AssessSettings, assess
 from imaging.resample import Resampler
-from imaging.thermal import burst_time_derivative, thermal_stretch
+from imaging.thermal import burst_time_derivative
 from tests.support.synthetic import hanning_pulse, measurement
 
 ARRIVALS_S = ((80e-6, 1.0), (260e-6, 0.6), (470e-6, 0.4))  # a direct arrival and two echoes
@@ -81,13 +83,22 @@ def test_a_colder_record_claims_no_change_where_the_baseline_was_not_recording()
     assert 0 < np.count_nonzero(uncovered) < 10
     np.testing.assert_array_equal(match.baseline.traces[:, uncovered], current.traces[:, uncovered])
     result = assess(current, [baseline], AssessSettings())
-    assert result.valid_baseline and not result.detected and result.peak_di < 0.2 * result.threshold
+    assert result.valid_baseline and not result.detected and result.peak_di < 0.3 * result.threshold  # measured 0.0048
 
 
-def test_a_baselines_model_is_fitted_once_and_again_when_its_traces_change_in_place():
-    times = np.arange(6000) / 10e6
-    baseline = measurement(_bursts_at(times, 1.0).astype(np.float32), np.array([0.0, 120.0, 240.0]))
-    model = thermal_stretch(baseline)
-    assert thermal_stretch(baseline) is model
-    baseline.traces[1, 1000] += 0.5
-    assert thermal_stretch(baseline) is not model
+
+def test_receiver_noise_does_not_pull_the_stretch_of_a_half_degree_change():
+    # White noise 40 dB below the direct arrival (the dev set's noisy cases), independent in both
+    # records. Interpolating the baseline at any fractional offset smooths its noise above the band,
+    # which lowered the cost of every stretch but 0: the stretch found was pulled away from the true
+    # one and then refused as explaining too little (0 on all six records); the search now compares
+    # the records below 3 f0 (measured errors <= 0.03e-4).
+    baseline, current = _fdtd(16, "reflecting", 20.0), _fdtd(16, "reflecting", 19.5)
+    true = 1.0 / (1.0 + 0.5e-4) - 1.0
+    peak = float(np.abs(baseline.traces).max())
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        noisy = [replace(m, traces=(m.traces + rng.normal(0, 0.01 * peak, m.traces.shape)).astype(np.float32))
+                 for m in (baseline, current)]
+        found, _ = best_stretch(*noisy)
+        assert found == pytest.approx(true, abs=0.06e-4)
