@@ -151,14 +151,15 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     if not (0 <= max_stretch < 0.1):
         raise CompensationError(f"max_stretch must be in [0, 0.1), got {max_stretch}")
     rows = receiver_rows(current.n_rx, rx_mask)
-    slope = _current_slope(current)
+    current_key = _traces_key(current)
+    slope = _current_slope(current, current_key)
     times = _sample_times_s(current)
     target = current.traces[rows].astype(np.float64)
     if max_stretch > 0:
         sub = times[::SEARCH_DECIMATION]
-        target_sub = _below_band(current)[rows, ::SEARCH_DECIMATION]
+        target_sub = _below_band(current, current_key)[rows, ::SEARCH_DECIMATION]
         slope_sub = slope[rows, ::SEARCH_DECIMATION]
-        search = Resampler.of(_below_band(baseline)[rows] * gain, baseline.t0_s, baseline.fs_hz)
+        search = Resampler.of(_below_band(baseline, _traces_key(baseline))[rows] * gain, baseline.t0_s, baseline.fs_hz)
 
         def per_rx_cost(stretches: np.ndarray) -> np.ndarray:
             """Residual energy [n_stretches, n_rx] of each candidate, all evaluated at once; samples
@@ -214,19 +215,20 @@ def _traces_key(m: Measurement) -> tuple:
             m.fs_hz, m.t0_s, m.excitation_hz, m.cycles)
 
 
-def _current_slope(m: Measurement) -> np.ndarray:
-    """``slope_traces`` of the record (float64, read-only), derived once per record."""
+def _current_slope(m: Measurement, key: tuple) -> np.ndarray:
+    """``slope_traces`` of the record (float64, read-only), derived once per record (``key``: ``_traces_key(m)``)."""
     def compute() -> np.ndarray:
         slope = slope_traces(m.traces, m)
         slope.setflags(write=False)
         return slope
-    return m.derived("thermal_slope", _traces_key(m), compute)
+    return m.derived("thermal_slope", key, compute)
 
 
-def _below_band(m: Measurement) -> np.ndarray:
+def _below_band(m: Measurement, key: tuple) -> np.ndarray:
     """The record's traces (float64, read-only) with what lies above the excitation's band removed:
     flat to 2 f0 (where a 5-cycle burst's spectrum is below 1e-3 of its peak), a cosine taper to
-    zero at 3 f0. Derived once per record (a baseline is searched against every measurement)."""
+    zero at 3 f0. Derived once per record (a baseline is searched against every measurement; ``key``:
+    ``_traces_key(m)``)."""
     def compute() -> np.ndarray:
         n = m.n_samples
         n_fft = sp_fft.next_fast_len(n, real=True)
@@ -235,7 +237,7 @@ def _below_band(m: Measurement) -> np.ndarray:
         out = sp_fft.irfft(sp_fft.rfft(m.traces.astype(np.float64), n_fft, axis=-1) * response, n_fft, axis=-1)[:, :n]
         out.setflags(write=False)
         return out
-    return m.derived("below_band", _traces_key(m), compute)
+    return m.derived("below_band", key, compute)
 
 
 def _in_band_energy(x: np.ndarray, m: Measurement) -> np.ndarray:
