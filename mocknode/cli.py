@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -70,6 +71,18 @@ def mock_node(
             "protocol_version": protocol_version, "violations": violation or None,
         }.items() if value is not None
     }
+    # The handlers go in before any port is announced: a supervisor may stop us the moment it
+    # reads a port, and an unhandled SIGTERM would leave the ports' links behind.
+    stopping = threading.Event()
+    servers: list[MockNodeServer] = []
+
+    def _stop(signum: int, _frame: object) -> None:
+        stopping.set()
+        for running in servers:
+            running.stop_event.set()
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
     try:
         fleet = load_scenario(scenario) if scenario is not None else default_scenario(nodes)
         node_scenarios = [_with_faults(node, overrides) for node in fleet.nodes]
@@ -83,11 +96,9 @@ def mock_node(
         print(f"mock-node: {exc}".splitlines()[0], file=sys.stderr)
         raise typer.Exit(2) from None
 
-    def _stop(signum: int, _frame: object) -> None:
+    servers.append(server)
+    if stopping.is_set():
         server.stop_event.set()
-
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGUSR1, lambda _signum, _frame: server.power_cycle())
     server.start()
     while not server.stop_event.wait(1.0):

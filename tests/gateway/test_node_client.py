@@ -215,6 +215,30 @@ def test_paced_transfer_takes_the_uart_line_time():
 
 
 @pytest.mark.e2e
+def test_cli_stops_cleanly_on_a_sigterm_sent_the_moment_a_port_is_announced(tmp_path):
+    # A supervisor may stop the mock node as soon as it reads a port line; the ports are announced
+    # while the server is built, so the handlers must already be in place (they were not: killed
+    # by the signal, links left behind).
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "mocknode", "--nodes", "3", "--link-dir", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO, env=env)
+    try:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and not select.select([proc.stdout], [], [], 0.1)[0]:
+            pass
+        assert os.read(proc.stdout.fileno(), 4096).startswith(b"node-01 ")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        assert list(tmp_path.iterdir()) == []
+        assert b"Traceback" not in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+        proc.stdout.close()
+        proc.stderr.close()
+
+
 def test_cli_serves_several_nodes_and_exits_cleanly_on_sigterm(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen(
