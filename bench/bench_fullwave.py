@@ -15,7 +15,7 @@ nearest reported defect; a defect with no reported defect within MATCH_MM is "mi
 is then to the map's peak, shown in brackets). A reported defect farther than MATCH_MM from
 every true one is a false alarm.
 
-    .venv/bin/python bench/bench_fullwave.py [--dev DIR] [--own DIR | --own-cache DIR] [--cases PATTERN ...]
+    .venv/bin/python bench/bench_fullwave.py [--dev DIR] [--own DIR | --own-cache DIR] [--cases PATTERN ...] [--no-thermometer]
 
 The dev set is not in the repository: without it the benchmark says so and exits 0, except
 under CI=true (exit 1). Own cases missing from --own are listed as missing, not scored.
@@ -95,9 +95,9 @@ def class_of(entry: dict) -> tuple[str, str]:
     return f"{ring} {kind}{' ' + '+'.join(variant) if variant else ''}", ring
 
 
-def score(source: str, entry: dict, baseline: Measurement, current: Measurement) -> Scored:
+def score(source: str, entry: dict, baseline: Measurement, current: Measurement, thermometer: bool = True) -> Scored:
     started = time.perf_counter()
-    result: Assessment = analyze(baseline, current, wall_mm=current.wall_mm)
+    result: Assessment = analyze(baseline, current, wall_mm=current.wall_mm, thermometer=thermometer)
     elapsed = (time.perf_counter() - started) * 1e3
     klass, ring = class_of(entry)
     circ = current.circumference_mm
@@ -227,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulate the own cases through this full-wave cache instead of reading --own")
     parser.add_argument("--cases", nargs="+", metavar="PATTERN", help="only cases matching these shell patterns")
     parser.add_argument("--skip-own", action="store_true", help="the dev set only")
+    parser.add_argument("--no-thermometer", action="store_true",
+                        help="leave the stretch to the search even on strong changes (AssessSettings.thermometer)")
     args = parser.parse_args(argv)
     if not (args.dev / "manifest.json").is_file():
         print(f"bench_fullwave: the full-wave dev set is absent ({args.dev}/manifest.json): nothing scored",
@@ -238,12 +240,13 @@ def main(argv: list[str] | None = None) -> int:
 
     started = time.perf_counter()
     load = os.getloadavg()[0]
-    dev = [score("dev", e, b, c) for e, b, c in dev_cases(args.dev) if wanted(e)]
+    thermometer = not args.no_thermometer
+    dev = [score("dev", e, b, c, thermometer) for e, b, c in dev_cases(args.dev) if wanted(e)]
     own: list[Scored] = []
     missing: list[str] = []
     if not args.skip_own:
         source = own_from_cache(args.own_cache) if args.own_cache else own_from_files(args.own, missing)
-        own = [score("own", e, b, c) for e, b, c in source if wanted(e)]
+        own = [score("own", e, b, c, thermometer) for e, b, c in source if wanted(e)]
     lines = table(dev, f"Dev set ({args.dev.name}, {len(dev)} cases)")
     if own:
         lines += table(own, f"Own full-wave cases ({len(own)} cases)")

@@ -160,6 +160,10 @@ def _sh_cases() -> list[Case]:
     add(_with_variants(_case("fw_n16_reflecting_notch_200_250_dTp4", n16r, (_notch(200, 250),), dt_c=4.0)))
     add(_with_variants(_case("fw_n16_absorbing_notch_80_100_dTm5", n16a, (_notch(80, 100),), dt_c=-5.0)))
     add(_with_variants(_case("fw_m8_reflecting_mass_120_200_dTp3", m8r, (_mass(120, 200),), dt_c=3.0)))
+    # ... beside a strong scatterer, whose change can buy a stretch of its own (docs/imaging.md)
+    add(_with_variants(_case("fw_m8_absorbing_light_330_250_dTp12", m8a, (_mass(330, 250, LIGHT),), dt_c=12.0)))
+    add(_with_variants(_case("fw_m8_reflecting_light_200_100_dTm10", m8r, (_mass(200, 100, LIGHT),), dt_c=-10.0)))
+    add(_with_variants(_case("fw_m8_absorbing_mass_280_330_dTp8", m8a, (_mass(280, 330),), dt_c=8.0)))
     # rings off the pipe's middle: the two end echoes no longer coincide
     add(_with_variants(_case("fw_n16_reflecting_asym_notch_160_210", asym, (_notch(160, 210),))))
     add(_with_variants(_case("fw_n16_absorbing_asym_notch_340_130", asym_a, (_notch(340, 130),))))

@@ -102,6 +102,7 @@ def assess_settings(node: NodeSettings, threshold: float | None, wall_mm: float 
         threshold=threshold,
         max_defects=im.max_defects,
         modal_orders=im.modal_orders,
+        thermometer=im.thermometer,
         max_compensated_stretch=im.max_compensated_stretch,
         wall_mm=wall_mm,
         **extra,

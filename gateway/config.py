@@ -182,6 +182,10 @@ class ImagingSettings(_Section):
         description="remove the lowest circumferential orders across the ring before imaging (imaging/modal.py): "
         "'auto' (0-1 for 16 receivers, 0 for 8), 0..8, or 'off'; for rings that leak other modes strongly",
     )
+    thermometer: bool = Field(
+        True, description="where a strong change (beyond max_residual's default 5 %) bought a stretch the records' "
+        "temperatures disagree with, image with theirs (docs/imaging.md); off for a node whose sensor is not trusted",
+    )
     library_size: int = Field(24, ge=1, le=256, description="baselines kept in the node's OBS library")
     library_temperature_step_c: float = Field(
         2.0, ge=0, le=100, description="a healthy measurement this far (degC) from every library baseline joins it; 0: off"

@@ -519,6 +519,9 @@ def _log_assessment(assessment: Assessment) -> None:
         change = assessment.strong_change
         unstretched = ("" if change.refused_stretch is None else
                        f" as recorded (the stretch search wanted {change.refused_stretch:+.2%}, beyond the range)")
+        if change.searched_stretch is not None:
+            unstretched += (f" warmed as the thermometers say ({assessment.baseline.stretch:+.3%}; the stretch search "
+                            f"wanted {change.searched_stretch:+.3%})" if assessment.baseline is not None else "")
         log.warning("strong change: the baseline%s leaves %.3g of the record unexplained (limit %.3g), the defects "
                     "located explain %.0f%% of it: reported as defects", unstretched, change.residual,
                     change.max_residual, 100 * change.explained)

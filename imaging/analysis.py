@@ -26,6 +26,7 @@ def analyze(
     max_defects: int = 3,
     compensate: bool = True,
     wall_mm: float | None = None,
+    thermometer: bool = True,
 ) -> Assessment:
     """Image ``current`` against ``baseline`` (default: the all-paths coherent method) and find defects.
 
@@ -47,6 +48,7 @@ def analyze(
         method=method,  # type: ignore[arg-type]
         feature=feature,  # type: ignore[arg-type]
         compensate=compensate,
+        thermometer=thermometer,
         max_residual=math.inf,
         threshold=threshold,
         max_defects=max_defects,

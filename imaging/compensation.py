@@ -38,6 +38,16 @@ DEFAULT_MAX_RESIDUAL = 0.05  # relative residual energy above which no baseline 
 # and couplant's own temperature response, thermal expansion.
 DEFAULT_MAX_COMPENSATED_STRETCH = 0.0015  # 0.15 %: about 15 degC in steel
 STRETCH_PER_DEGC = 1.0e-4  # T(0,1) in steel: shear velocity -1e-4 per degC (the mock's model too)
+# A strong scatterer's change can buy a stretch no temperature made (a near-rigid mass on a sparse
+# ring: -1 to -2.5e-3 with no temperature change, project FDTD); the records' own temperatures
+# then decide. The search and the thermometers disagree when they differ by more than this many
+# degC plus this share of the thermometers' difference: more than a thermometer can plausibly be
+# wrong by (a class-2 thermocouple's 2.5 degC, IEC 60584, and a few degC between where it sits and
+# the wall between the rings, in a transient), the wall's velocity coefficient known to about a
+# quarter. Measured (docs/accuracy.md): at 2.5 degC the override also fired on the full-wave sets'
+# masses (spurious stretches of 3-6 degC) and made them worse; at 8 degC only on 10-25 degC ones.
+THERMOMETER_TOLERANCE_C = 8.0
+THERMOMETER_RELATIVE = 0.25
 COARSE_STEPS = 21  # stretch grid of the first pass; a step of 0.05 % at +-0.5 %
 SEARCH_DECIMATION = 16  # the search compares every 16th sample (7 per period at 85 kHz, 10 MHz: see below)
 FINE_STEPS = 21  # second pass across the best coarse cell, per receiver
@@ -432,6 +442,48 @@ def as_recorded(library: Sequence[Measurement], index: int, current: Measurement
     rows = receiver_rows(current.n_rx, rx_mask)
     residual = _relative_residual(current.traces[rows].astype(np.float64), library[index].traces[rows].astype(np.float64))
     return BaselineMatch(index, 0.0, residual, library[index])
+
+
+def thermometer_stretch(baseline: Measurement, current: Measurement) -> float | None:
+    """The stretch the records' own temperatures predict, STRETCH_PER_DEGC per degC of warming; None
+    when either record has no temperature."""
+    change = current.temperature_c - baseline.temperature_c
+    return STRETCH_PER_DEGC * change if math.isfinite(change) else None
+
+
+def disagrees_with_thermometers(stretch: float, predicted: float) -> bool:
+    """Whether a stretch the search found is further from the thermometers' than they can be wrong by."""
+    return abs(stretch - predicted) > THERMOMETER_TOLERANCE_C * STRETCH_PER_DEGC + THERMOMETER_RELATIVE * abs(predicted)
+
+
+def at_thermometer_stretch(library: Sequence[Measurement], compatible: Sequence[int], current: Measurement,
+                           rx_mask: np.ndarray | None = None) -> BaselineMatch | None:
+    """The compatible library entry nearest ``current`` in temperature, warmed by the stretch the two
+    temperatures predict (``warmed_match``); None when no compatible entry has a temperature or
+    ``current`` has none."""
+    known = [(abs(current.temperature_c - library[i].temperature_c), i) for i in compatible
+             if thermometer_stretch(library[i], current) is not None]
+    if not known:
+        return None
+    index = min(known)[1]
+    stretch = thermometer_stretch(library[index], current)
+    assert stretch is not None
+    return warmed_match(library, index, current, stretch, rx_mask)
+
+
+def warmed_match(library: Sequence[Measurement], index: int, current: Measurement, stretch: float,
+                 rx_mask: np.ndarray | None = None) -> BaselineMatch:
+    """Library entry ``index`` warmed by ``stretch`` (the medium's response stretched, imaging/thermal.py)
+    as the match of ``current``, the receivers ``rx_mask`` keeps giving the residual; where the entry
+    has no sample the current is its own reference, as in the search."""
+    entry = library[index]
+    traces = entry.traces if stretch == 0.0 else stretch_traces(entry, stretch).astype(np.float32)
+    if stretch != 0.0:
+        uncovered = ~recorded(_sample_times_s(current) / (1.0 + stretch), entry)
+        traces[:, uncovered] = current.traces[:, uncovered]
+    rows = receiver_rows(current.n_rx, rx_mask)
+    residual = _relative_residual(current.traces[rows].astype(np.float64), traces[rows].astype(np.float64))
+    return BaselineMatch(index, stretch, residual, replace(entry, traces=traces))
 
 
 def unexplained(match: BaselineMatch, max_residual: float, why: str = "") -> NoValidBaseline:

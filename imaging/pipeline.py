@@ -26,6 +26,8 @@ from imaging.compensation import (
     BaselineMatch,
     NoValidBaseline,
     as_recorded,
+    at_thermometer_stretch,
+    disagrees_with_thermometers,
     select_compatible_baseline,
     unexplained,
     with_common_gain,
@@ -70,6 +72,8 @@ class AssessSettings:
     feature: Literal["analytic", "envelope", "squared"] = "analytic"
     compensate: bool = True
     common_gain: bool = True  # scale the matched baseline by the receivers' common gain where it explains the change
+    # beyond max_residual (multipath), the records' temperatures overrule a stretch they disagree with
+    thermometer: bool = True
     max_stretch: float = DEFAULT_MAX_STRETCH
     max_residual: float = DEFAULT_MAX_RESIDUAL
     # None: image whatever the stretch (a one-off analysis of two files); the gateway sets
@@ -145,16 +149,19 @@ class StrongChange:
     """A record imaged where a bound alone would have abstained: the baseline left ``residual`` (more
     than ``max_residual``), or the stretch search wanted ``refused_stretch`` (beyond the compensated
     range: the baseline as recorded was used), and the located defects explain ``explained`` of what
-    it left (>= MIN_EXPLAINED_BY_DEFECTS, ``strong_change``): the defects are reported."""
+    it left (>= MIN_EXPLAINED_BY_DEFECTS, ``strong_change``): the defects are reported.
+    ``searched_stretch``: the stretch the search had found, set aside for the one the records'
+    temperatures predict (``AssessSettings.thermometer``; the match's ``stretch`` is theirs)."""
 
     residual: float
     max_residual: float
     explained: float
     refused_stretch: float | None = None
+    searched_stretch: float | None = None
 
     def as_dict(self) -> dict:
         return {"residual": self.residual, "max_residual": self.max_residual, "explained_by_defects": self.explained,
-                "refused_stretch": self.refused_stretch}
+                "refused_stretch": self.refused_stretch, "searched_stretch": self.searched_stretch}
 
 
 @dataclass(frozen=True)
@@ -298,6 +305,17 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         max_residual=settings.max_residual, rx_mask=mask, mismatch=next((w for w in mismatches if w), None),
         keep_best=True, common_gain=settings.common_gain,
     )
+    searched = None  # the search's stretch, when the thermometers overruled it
+    if (settings.method == "multipath" and settings.thermometer and isinstance(match, BaselineMatch)
+            and not match.residual <= THERMOMETERS_DECIDE_BEYOND):
+        # A strong change: a near-rigid scatterer can buy a stretch no temperature made (docs/imaging.md,
+        # "The records' temperatures"); where the records' own temperatures disagree with it beyond
+        # what they can be wrong by, theirs is used. Not below: a sound pipe's record is what a wrong
+        # thermometer would turn into a false alarm.
+        by_thermometers = at_thermometer_stretch(baselines, compatible, current, mask)
+        if (by_thermometers is not None and abs(by_thermometers.stretch) <= settings.max_stretch
+                and disagrees_with_thermometers(match.stretch, by_thermometers.stretch)):
+            searched, match = match.stretch, by_thermometers
     limit = settings.max_compensated_stretch
     beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged
     refused = None
@@ -307,7 +325,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         beyond, refused = _too_far_from_the_library(match, settings), match.stretch
         match = as_recorded(baselines, match.index, current, mask) if settings.method == "multipath" else beyond
     if (isinstance(match, BaselineMatch) and settings.common_gain and match.gain == 1.0
-            and (match.stretch != 0.0 or beyond is not None)):
+            and (match.stretch != 0.0 or beyond is not None or searched is not None)):
         # a drift hidden by the stretch until it was undone, or beside the entry as recorded
         match = with_common_gain(match, current, mask)
     if isinstance(match, BaselineMatch) and not match.residual <= settings.max_residual and (
@@ -329,7 +347,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         di_map, peak, defects, explained = _multipath(residual, current, scene, settings, threshold, over)
         if over:
             judged = strong_change(match, defects, explained, settings.max_residual, current.tx_rx_distance_mm,
-                                   refused)
+                                   refused, searched)
             if isinstance(judged, str):
                 return _abstain(settings, threshold, _refused(match, beyond, settings, judged), faults, start)
             strong = judged
@@ -339,10 +357,12 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
 
 
 def strong_change(match: BaselineMatch, defects: list[Defect], explained: float, max_residual: float,
-                  tx_rx_distance_mm: float, refused_stretch: float | None = None) -> StrongChange | str:
+                  tx_rx_distance_mm: float, refused_stretch: float | None = None,
+                  searched_stretch: float | None = None) -> StrongChange | str:
     """Judge a baseline that leaves more than ``max_residual`` of the record (or is used as recorded, the
-    stretch search having wanted ``refused_stretch``): a strong defect (the StrongChange to report with
-    its defects) or a wrong reference (why not, for the abstention).
+    stretch search having wanted ``refused_stretch``; or warmed as the thermometers say, the search
+    having found ``searched_stretch``): a strong defect (the StrongChange to report with its defects)
+    or a wrong reference (why not, for the abstention).
 
     A strong defect is located (its strongest change is not at the Tx or Rx ring: a change there is
     the ring's own, or of what lies beyond it, such as another pipe's ends) and its echoes explain at
@@ -357,7 +377,7 @@ def strong_change(match: BaselineMatch, defects: list[Defect], explained: float,
     if not explained >= MIN_EXPLAINED_BY_DEFECTS:
         return (f"the defects located explain {explained:.0%} of it (a strong defect explains at least "
                 f"{MIN_EXPLAINED_BY_DEFECTS:.0%}): the reference is wrong or stale, or the pipe changed as a whole")
-    return StrongChange(match.residual, max_residual, explained, refused_stretch)
+    return StrongChange(match.residual, max_residual, explained, refused_stretch, searched_stretch)
 
 
 def _changed_as_a_whole(match: BaselineMatch, residual: np.ndarray, current: Measurement,
@@ -406,6 +426,8 @@ def _too_far_from_the_library(match: BaselineMatch, settings: AssessSettings) ->
     )
 
 
+THERMOMETERS_DECIDE_BEYOND = DEFAULT_MAX_RESIDUAL  # residual share beyond which the records' temperatures
+# may overrule the stretch search (AssessSettings.thermometer): whatever ``max_residual`` is set to
 MULTIPATH_STEP_MM = 4.0  # the multipath map (search and storage); peaks are refined at 1 mm x 1 deg
 MULTIPATH_MAX_STEP_DEG = 4.0
 

@@ -70,6 +70,16 @@ def test_the_modal_filter_is_off_unless_a_node_asks_for_it(tmp_path):
     assert assess_settings(filtered, 0.02, 4.0).modal_orders_for(16) == default_modal_orders(16)
 
 
+def test_a_node_whose_thermometer_is_not_trusted_can_leave_the_stretch_to_the_search(tmp_path):
+    from gateway.assessment import assess_settings
+
+    path = tmp_path / "g.toml"
+    path.write_text(GOOD.format(db=tmp_path / "x.db") + "[nodes.imaging]\nthermometer = false\n")
+    trusted, untrusted = load_settings(path).nodes
+    assert assess_settings(trusted, 0.02, 4.0).thermometer is True
+    assert assess_settings(untrusted, 0.02, 4.0).thermometer is False
+
+
 def test_a_record_beyond_the_compensated_temperature_range_is_stored_as_an_abstention_with_its_reason(tmp_path):
     from gateway.assessment import assess_settings, detection_input
     from imaging.pipeline import assess

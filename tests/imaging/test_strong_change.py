@@ -18,7 +18,7 @@ import pytest
 from fullwave.defects import Mass
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
-from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH, BaselineMatch, select_baseline
+from imaging.compensation import DEFAULT_MAX_COMPENSATED_STRETCH, STRETCH_PER_DEGC, BaselineMatch, select_baseline
 from imaging.health import MAX_COMMON_GAIN_CHANGE, common_gain_change
 from imaging.localize import Confidence
 from imaging.pipeline import (
@@ -52,6 +52,7 @@ def light_mass():
 
 def test_a_mass_that_leaves_more_than_the_bound_is_reported_as_a_defect(light_mass):
     baseline, current = light_mass
+    current = replace(current, temperature_c=math.nan)  # a node without a thermometer: the search's stretch
     match = select_baseline([baseline], current, max_residual=math.inf)
     assert isinstance(match, BaselineMatch) and match.residual > 3 * GATEWAY.max_residual  # measured 0.16
     result = assess(current, [baseline], GATEWAY)
@@ -64,6 +65,7 @@ def test_a_mass_that_leaves_more_than_the_bound_is_reported_as_a_defect(light_ma
     assert as_json["strong_change"]["residual"] == pytest.approx(match.residual)
     assert as_json["strong_change"]["max_residual"] == GATEWAY.max_residual
     assert as_json["strong_change"]["refused_stretch"] is None  # the stretch found (-0.09 %) was within the range
+    assert as_json["strong_change"]["searched_stretch"] is None
 
 
 def test_a_record_within_the_bound_carries_no_strong_change(light_mass):
@@ -143,9 +145,10 @@ def test_beyond_the_bound_a_defect_must_be_located_and_explain_what_is_left(axia
 def test_a_stretch_a_strong_scatterer_buys_beyond_the_bound_does_not_blind_monitoring():
     # No temperature change, absorbing ends: the light mass alone makes the stretch search find -0.21 %,
     # beyond the 0.15 % monitoring compensates. The baseline as recorded stands in when the strong-change
-    # tests pass it, and the mass is reported.
+    # tests pass it, and the mass is reported. (A node without a thermometer: with one, its records'
+    # temperatures overrule the search first, below.)
     baseline = simulate(_eight_ring("absorbing"))
-    current = simulate(_eight_ring("absorbing", LIGHT_MASS))
+    current = replace(simulate(_eight_ring("absorbing", LIGHT_MASS)), temperature_c=math.nan)
     match = select_baseline([baseline], current, max_residual=math.inf)
     assert isinstance(match, BaselineMatch) and abs(match.stretch) > GATEWAY.max_compensated_stretch
     result = assess(current, [baseline], GATEWAY)
@@ -164,3 +167,46 @@ def test_a_sound_pipe_warmer_than_the_compensated_range_is_still_abstained_on(en
     reason = result.no_valid_baseline.reason
     assert re.search(r"stretched \+0\.2\d% .*beyond the 0\.15%", reason), reason
     assert "same on every receiver" in reason  # unstretched, the temperature's change is axisymmetric
+
+
+@pytest.fixture(scope="module")
+def warmed_light_mass():
+    """(baseline at 20 degC, current at 32 degC with the 1 kg mass) of an absorbing-ends 8-ring pipe."""
+    return simulate(_eight_ring("absorbing")), simulate(_eight_ring("absorbing", LIGHT_MASS).with_changes(temperature_c=32.0))
+
+
+def test_a_strong_defect_on_a_warmer_pipe_is_imaged_with_the_stretch_its_thermometers_give(warmed_light_mass):
+    # The mass's change buys a stretch of -1.24e-3 (cooling by 12 degC) on a pipe 12 degC warmer:
+    # imaged with it, the mass is reported 162 mm off. Its records' temperatures say +1.2e-3.
+    baseline, current = warmed_light_mass
+    searched = assess(current, [baseline], replace(GATEWAY, thermometer=False))
+    assert searched.baseline.stretch < 0 and _off_mm(searched) > 100.0  # measured -1.24e-3, 162 mm
+    result = assess(current, [baseline], GATEWAY)
+    assert result.detected and _off_mm(result) < 20.0  # measured 11.9 mm
+    assert result.baseline.stretch == pytest.approx(12.0 * STRETCH_PER_DEGC)
+    assert result.strong_change.searched_stretch == pytest.approx(searched.baseline.stretch)
+    assert result.as_json()["strong_change"]["searched_stretch"] == result.strong_change.searched_stretch
+
+
+def test_thermometers_that_read_nonsense_are_not_believed(warmed_light_mass):
+    baseline, current = warmed_light_mass
+    result = assess(replace(current, temperature_c=420.0), [baseline], GATEWAY)  # a stretch of 4 %: no pipe's
+    assert result.strong_change is None or result.strong_change.searched_stretch is None
+    unknown = assess(replace(current, temperature_c=math.nan), [baseline], GATEWAY)
+    assert unknown.strong_change is None or unknown.strong_change.searched_stretch is None
+
+
+@pytest.mark.parametrize("off_c", [-10.0, 10.0])
+def test_a_wrong_thermometer_on_a_sound_pipe_changes_nothing(off_c):
+    # Below the 5 % bound the search's stretch stands whatever the thermometers say: overruling it
+    # there is what would turn a faulty sensor into a false alarm.
+    baseline, current = simulate(_eight_ring("reflecting")), simulate(_eight_ring("reflecting").with_changes(temperature_c=28.0))
+    result = assess(replace(current, temperature_c=28.0 + off_c), [baseline], GATEWAY)
+    assert result.valid_baseline and not result.detected
+    assert result.baseline.stretch == pytest.approx(8.0 * STRETCH_PER_DEGC, rel=0.02)
+    assert result.strong_change is None
+
+
+def _off_mm(result) -> float:
+    best = result.defects[0]
+    return surface_distance_mm(best.axial_mm, best.angle_deg, LIGHT_MASS.axial_mm, LIGHT_MASS.angle_deg, MID_WALL_MM)
