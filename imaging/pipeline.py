@@ -312,9 +312,13 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         # "The records' temperatures"); where the records' own temperatures disagree with it beyond
         # what they can be wrong by, theirs is used. Not below: a sound pipe's record is what a wrong
         # thermometer would turn into a false alarm.
+        # Also where the search's stretch lies beyond the compensated range and theirs within it: the
+        # entry as recorded (below) would leave the whole temperature change in.
         by_thermometers = at_thermometer_stretch(baselines, compatible, current, mask)
-        if (by_thermometers is not None and abs(by_thermometers.stretch) <= settings.max_stretch
-                and disagrees_with_thermometers(match.stretch, by_thermometers.stretch)):
+        limit = settings.max_compensated_stretch
+        if by_thermometers is not None and abs(by_thermometers.stretch) <= settings.max_stretch and (
+                disagrees_with_thermometers(match.stretch, by_thermometers.stretch)
+                or (limit is not None and abs(match.stretch) > limit >= abs(by_thermometers.stretch))):
             searched, match = match.stretch, by_thermometers
     limit = settings.max_compensated_stretch
     beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged

@@ -210,3 +210,26 @@ def test_a_wrong_thermometer_on_a_sound_pipe_changes_nothing(off_c):
 def _off_mm(result) -> float:
     best = result.defects[0]
     return surface_distance_mm(best.axial_mm, best.angle_deg, LIGHT_MASS.axial_mm, LIGHT_MASS.angle_deg, MID_WALL_MM)
+
+
+def test_a_strong_defect_whose_search_runs_past_the_compensated_range_is_imaged_at_its_thermometers_stretch(
+        tmp_path):
+    # The own full-wave case of a light mass on a free-ended 8-ring pipe 10 degC colder than its
+    # baseline (on a 1 mm grid, to be quick): the mass pulls the search to -1.65e-3, past monitoring's
+    # 1.5e-3, where the entry as recorded stood in and, the whole temperature change left in, was
+    # abstained on (a blind node). The records' temperatures say -1.0e-3, within the range.
+    from fullwave.cache import case_pair
+    from fullwave.cases import own_cases
+
+    case = next(c for c in own_cases() if c.name == "fw_m8_reflecting_light_200_100_dTm10").with_cell(1.0)
+    baseline, current = case_pair(case, tmp_path)
+    truth = case.defects[0]
+    without = assess(current, [baseline], replace(GATEWAY, wall_mm=None, thermometer=False))
+    assert not without.valid_baseline and "stretched" in without.no_valid_baseline.reason
+    result = assess(current, [baseline], replace(GATEWAY, wall_mm=None))
+    assert result.valid_baseline and result.detected
+    assert result.baseline.stretch == pytest.approx(-10.0 * STRETCH_PER_DEGC)
+    assert result.strong_change.searched_stretch < -DEFAULT_MAX_COMPENSATED_STRETCH  # measured -1.65e-3
+    nearest = min(surface_distance_mm(d.axial_mm, d.angle_deg, truth.axial_mm, truth.angle_deg,
+                                      current.circumference_mm) for d in result.defects)
+    assert nearest < 20.0  # measured 10.1 mm (a second candidate, 205 mm off, is reported first)
