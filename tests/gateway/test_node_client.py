@@ -1,12 +1,14 @@
 """The gateway's NodeClient against the mock node on a real pseudo-terminal and on TCP 127.0.0.1."""
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -214,23 +216,14 @@ def test_paced_transfer_takes_the_uart_line_time():
     assert line_s <= elapsed_s < 1.5 * line_s + 0.5
 
 
-@pytest.mark.e2e
-def test_cli_stops_cleanly_on_a_sigterm_sent_the_moment_a_port_is_announced(tmp_path):
-    # A supervisor may stop the mock node as soon as it reads a port line; the ports are announced
-    # while the server is built, so the handlers must already be in place (they were not: killed
-    # by the signal, links left behind).
+@contextlib.contextmanager
+def _mock_node_cli(link_dir: Path, nodes: int) -> Iterator[subprocess.Popen]:
+    """``python -m mocknode`` serving ``nodes`` nodes with their links in ``link_dir``; killed if still running."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-m", "mocknode", "--nodes", "3", "--link-dir", str(tmp_path)],
+    proc = subprocess.Popen([sys.executable, "-m", "mocknode", "--nodes", str(nodes), "--link-dir", str(link_dir)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO, env=env)
     try:
-        deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline and not select.select([proc.stdout], [], [], 0.1)[0]:
-            pass
-        assert os.read(proc.stdout.fileno(), 4096).startswith(b"node-01 ")
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=30) == 0
-        assert list(tmp_path.iterdir()) == []
-        assert b"Traceback" not in proc.stderr.read()
+        yield proc
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -239,13 +232,25 @@ def test_cli_stops_cleanly_on_a_sigterm_sent_the_moment_a_port_is_announced(tmp_
         proc.stderr.close()
 
 
+@pytest.mark.e2e
+def test_cli_stops_cleanly_on_a_sigterm_sent_the_moment_a_port_is_announced(tmp_path):
+    # A supervisor may stop the mock node as soon as it reads a port line; the ports are announced
+    # while the server is built, so the handlers must already be in place (they were not: killed
+    # by the signal, links left behind).
+    with _mock_node_cli(tmp_path, 3) as proc:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and not select.select([proc.stdout], [], [], 0.1)[0]:
+            pass
+        assert os.read(proc.stdout.fileno(), 4096).startswith(b"node-01 ")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        assert list(tmp_path.iterdir()) == []
+        assert b"Traceback" not in proc.stderr.read()
+
+
+@pytest.mark.e2e
 def test_cli_serves_several_nodes_and_exits_cleanly_on_sigterm(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mocknode", "--nodes", "2", "--link-dir", str(tmp_path)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO, env=env,
-    )
-    try:
+    with _mock_node_cli(tmp_path, 2) as proc:
         output = b""
         deadline = time.monotonic() + 10.0
         while output.count(b"\n") < 2 and time.monotonic() < deadline:
@@ -258,9 +263,3 @@ def test_cli_serves_several_nodes_and_exits_cleanly_on_sigterm(tmp_path):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
         assert not (tmp_path / "node-01").exists()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
-        proc.stdout.close()
-        proc.stderr.close()
