@@ -8,12 +8,12 @@ stretches the burst, lowering its carrier by s f0 and lengthening it. That leave
 growing as s^2 that a plain stretch cannot remove, and it biases the plain stretch that best
 matches a warm record low (project FDTD, 600 mm sound pipe, +16 degC: the best plain stretch is
 0.76-0.89 of the true one and leaves 2.5e-5 to 1.1e-4 of the record's energy; this model at the
-true stretch 1.4e-7 to 1e-5: bench/bench_thermal.py).
+true stretch 1.8e-6 to 1.9e-5: bench/bench_thermal.py).
 
 With k_s the filter that turns the burst x(t) into x((1 + s) t), the warm record is (b * k_s)
 stretched by (1 + s), up to a gain 1 / (1 + s): stretching g * x_s gives g stretched * x. To
-first order in s (the second-order term is ~(5 s)^2 of the record for a 5-cycle burst, 6e-4 at
-s = 0.5 %), b * k_s = b + s b', where b' is b filtered by k' = d k_s / ds at 0, the filter that
+first order in s (what the second order leaves, measured on a unit burst: 5.7e-4 of its amplitude
+at s = 0.15 %, 2.5e-3 at 0.4 %, tests/imaging/test_thermal.py), b * k_s = b + s b', where b' is b filtered by k' = d k_s / ds at 0, the filter that
 turns x(t) into t x'(t) (x' its time derivative). k' is formed in the burst's band (a regularised
 spectral ratio) and is zero outside it, so out-of-band noise is stretched as before, never
 amplified. Pure functions on arrays; the stretch is applied by cubic B-spline resampling
