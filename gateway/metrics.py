@@ -103,6 +103,10 @@ class GatewayCollector(Collector):
         stretch = GaugeMetricFamily("pipesentry_node_baseline_stretch",
                                     "the time-stretch the last imaged record's baseline was matched with "
                                     "(about 1e-4 per degC from that baseline's temperature)", labels=node)
+        offset = GaugeMetricFamily("pipesentry_node_thermometer_offset_celsius",
+                                   "how much further the node's thermometer says the pipe's temperature moved since "
+                                   "the last imaged record's baseline than the wave's stretch says (about 0; a "
+                                   "drifting or misplaced sensor grows it)", labels=node)
         for worker in self.nodes:
             name = worker.settings.id
             counters = worker.counters
@@ -117,7 +121,9 @@ class GatewayCollector(Collector):
             if worker.last_match is not None:
                 gain.add_metric([name], worker.last_match[0])
                 stretch.add_metric([name], worker.last_match[1])
-        yield from (interval, cycles, failed, transfers, timeouts, retries, gain, stretch)
+                if worker.last_match[2] is not None:
+                    offset.add_metric([name], worker.last_match[2])
+        yield from (interval, cycles, failed, transfers, timeouts, retries, gain, stretch, offset)
 
     def _sink_metrics(self) -> Iterator[Metric]:
         sink = ["sink"]

@@ -70,6 +70,7 @@ from gateway.logs import node_context
 from gateway.node_client import NodeClient
 from gateway.node_errors import NodeClientError, NodeRebooted, NodeTimeout, ProtocolMismatch, TransferError
 from gateway.watchdog import Heartbeats
+from imaging.compensation import thermometer_offset_c
 from imaging.detection import default_threshold
 from imaging.pipeline import Assessment, assess
 from nodelink.transport import PORT_ERRORS, PortVanished
@@ -140,9 +141,10 @@ class NodeWorker:
         self.alerting = alerting or AlertingSettings()
         self.client_factory = client_factory
         self.counters = NodeCounters()
-        # (common gain, stretch) the last imaged record's baseline was matched with: the ring's drift and
-        # the temperature as the imaging saw them, for the metrics thread (None until a record is imaged)
-        self.last_match: tuple[float, float] | None = None
+        # (common gain, stretch, thermometer offset degC or None) the last imaged record's baseline was
+        # matched with: the ring's drift, the temperature as the imaging saw it and how far the node's
+        # thermometer disagrees, for the metrics thread (None until a record is imaged)
+        self.last_match: tuple[float, float, float | None] | None = None
         self.conn: Connection | None = None
         self.flag: FlagState | None = None  # the flagger's memory; None: restore it from storage first
         self.library = BaselineLibrary()
@@ -393,7 +395,8 @@ class NodeWorker:
             else:
                 assessment = assess(acquisition.measurement, list(inputs.library), imaging)
             if assessment.baseline is not None:
-                self.last_match = (assessment.baseline.gain, assessment.baseline.stretch)
+                self.last_match = (assessment.baseline.gain, assessment.baseline.stretch,
+                                   thermometer_offset_c(assessment.baseline, acquisition.temperature_c))
             _log_assessment(assessment)
             verdict = decide_monitoring(
                 self.settings, history, inputs, assessment, temperature_c=acquisition.temperature_c, now=self.clock.wall()

@@ -451,6 +451,16 @@ def thermometer_stretch(baseline: Measurement, current: Measurement) -> float | 
     return STRETCH_PER_DEGC * change if math.isfinite(change) else None
 
 
+def thermometer_offset_c(match: BaselineMatch, temperature_c: float | None) -> float | None:
+    """How much further the thermometers say the pipe's temperature moved since the matched baseline than
+    its stretch says (degC, STRETCH_PER_DEGC per degC); None without both temperatures. About 0 while
+    sensor and wall agree: a drifting, stuck or misplaced sensor shows as a growing offset."""
+    if temperature_c is None:
+        return None
+    change = float(temperature_c) - match.baseline.temperature_c
+    return change - match.stretch / STRETCH_PER_DEGC if math.isfinite(change) else None
+
+
 def disagrees_with_thermometers(stretch: float, predicted: float) -> bool:
     """Whether a stretch the search found is further from the thermometers' than they can be wrong by."""
     return abs(stretch - predicted) > THERMOMETER_TOLERANCE_C * STRETCH_PER_DEGC + THERMOMETER_RELATIVE * abs(predicted)

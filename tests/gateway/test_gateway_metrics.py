@@ -75,6 +75,9 @@ def test_the_gateway_counts_cycles_retries_failures_and_deliveries_on_its_metric
         # pipe-1's ring has not drifted (the mock's gain is steady); pipe-2 has imaged nothing
         assert value(first, "pipesentry_node_baseline_gain", node="pipe-1") == pytest.approx(1.0, abs=0.02)
         assert abs(value(first, "pipesentry_node_baseline_stretch", node="pipe-1")) < 1e-3
+        # the mock node reports the pipe's own temperature: its thermometer and the wave agree
+        assert abs(value(first, "pipesentry_node_thermometer_offset_celsius", node="pipe-1")) < 1.0
+        assert value(first, "pipesentry_node_thermometer_offset_celsius", node="pipe-2") is None
         assert value(first, "pipesentry_node_baseline_gain", node="pipe-2") is None
         assert (value(first, "pipesentry_gateway_node_cycle_failures_total", node="pipe-2", reason="port") or 0) >= 1
         assert value(first, "pipesentry_gateway_node_cycles_total", node="pipe-2") == 0

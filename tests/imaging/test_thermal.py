@@ -13,7 +13,7 @@ import pytest
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging.arrivals import hann_burst
-from imaging.compensation import BaselineMatch, best_stretch, select_baseline, stretch_traces
+from imaging.compensation import BaselineMatch, best_stretch, select_baseline, stretch_traces, thermometer_offset_c
 from imaging.pipeline import AssessSettings, assess
 from imaging.resample import Resampler
 from imaging.thermal import burst_time_derivative
@@ -102,3 +102,14 @@ def test_receiver_noise_does_not_pull_the_stretch_of_a_half_degree_change():
                  for m in (baseline, current)]
         found, _ = best_stretch(*noisy)
         assert found == pytest.approx(true, abs=0.06e-4)
+
+
+def test_the_thermometer_offset_is_how_much_further_the_sensor_says_the_pipe_moved_than_the_wave():
+    times = np.arange(600) / 10e6
+    baseline = measurement(_bursts_at(times, 1.0).astype(np.float32), np.array([0.0, 120.0, 240.0]), temperature_c=20.0)
+    match = BaselineMatch(0, 1.0e-3, 0.0, baseline)  # the wave says +10 degC
+    assert thermometer_offset_c(match, 30.0) == pytest.approx(0.0)
+    assert thermometer_offset_c(match, 35.0) == pytest.approx(5.0)  # the sensor reads 5 degC too warm
+    assert thermometer_offset_c(match, None) is None and thermometer_offset_c(match, float("nan")) is None
+    unknown = BaselineMatch(0, 1.0e-3, 0.0, replace(baseline, temperature_c=float("nan")))
+    assert thermometer_offset_c(unknown, 30.0) is None
