@@ -17,18 +17,21 @@ PYTHON = sys.executable
 
 
 def wait_until(predicate: Callable[[], object], timeout_s: float, interval_s: float = 0.1, what: str = "condition"):
-    """Poll ``predicate`` until it returns a truthy value; fail the test after ``timeout_s``."""
+    """Poll ``predicate`` until it returns a truthy value; fail the test after ``timeout_s``, saying what the
+    last poll gave (its error, or its value: an early error the later polls got past is not the story)."""
     deadline = time.monotonic() + timeout_s
-    last_exc: BaseException | None = None
+    last = "never polled"
     while time.monotonic() < deadline:
         try:
             value = predicate()
         except Exception as exc:  # noqa: BLE001 (any error means not yet: e.g. the database file does not exist)
-            last_exc, value = exc, None
+            last, value = f"error: {type(exc).__name__}: {exc}", None
+        else:
+            last = f"returned {value!r}"[:300]
         if value:
             return value
         time.sleep(interval_s)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}" + (f" (last error: {last_exc})" if last_exc else ""))
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what} (last poll {last})")
 
 
 class Proc:
