@@ -6,7 +6,6 @@ is at ``t0_s + k / fs_hz``. An arrival "at sample k" means the burst *starts* at
 """
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -158,9 +157,7 @@ def _summary(m: Measurement) -> tuple[DirectArrival, np.ndarray]:
     nodes share nothing. The key is a digest of the traces plus every field the result depends
     on, so traces changed in place are analysed again and nothing stale is returned.
     """
-    traces = np.ascontiguousarray(m.traces)
-    key = (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
-           m.fs_hz, m.t0_s, m.tx_rx_distance_mm, m.velocity_m_s, m.excitation_hz, m.cycles)
+    key = (*m.traces_digest(), m.fs_hz, m.t0_s, m.tx_rx_distance_mm, m.velocity_m_s, m.excitation_hz, m.cycles)
 
     def compute() -> tuple[DirectArrival, np.ndarray]:
         env = matched_envelope(m.traces, m.fs_hz, m.excitation_hz, m.cycles)

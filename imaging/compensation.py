@@ -13,7 +13,6 @@ rather than image against a wrong reference.
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -198,11 +197,7 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     if best == 0.0:
         return 0.0, plain_residual, as_recorded_traces
     at = times / (1.0 + best)
-    moved = Resampler(baseline)(at) * gain + best * slope
-    # Where the baseline has no sample (a colder record's end holds what arrived after the
-    # baseline's), the current is its own reference: no change is claimed there.
-    uncovered = ~recorded(at, baseline)
-    moved[:, uncovered] = current.traces[:, uncovered]
+    moved = _own_reference_where_unrecorded(Resampler(baseline)(at) * gain + best * slope, at, baseline, current)
     stretched_residual = _relative_residual(target, moved[rows])
     # Stretch only when it explains a good part of the difference: a defect's echo right after
     # the direct arrival also "prefers" a tiny delay, and stretching it away would bias the map.
@@ -218,11 +213,19 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     return best, stretched_residual, moved.astype(np.float32)
 
 
+def _own_reference_where_unrecorded(warmed: np.ndarray, at_s: np.ndarray, baseline: Measurement,
+                                    current: Measurement) -> np.ndarray:
+    """``warmed`` (the baseline read at the times ``at_s``), with ``current``'s own samples wherever the
+    baseline has none (a colder record's end holds what arrived after the baseline's): no change is
+    claimed there. In place; returned."""
+    uncovered = ~recorded(at_s, baseline)
+    warmed[:, uncovered] = current.traces[:, uncovered]
+    return warmed
+
+
 def _traces_key(m: Measurement) -> tuple:
     """What a record's derived traces depend on: a digest of its traces and its acquisition setup."""
-    traces = np.ascontiguousarray(m.traces)
-    return (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), traces.shape, traces.dtype.str,
-            m.fs_hz, m.t0_s, m.excitation_hz, m.cycles)
+    return (*m.traces_digest(), m.fs_hz, m.t0_s, m.excitation_hz, m.cycles)
 
 
 def _current_slope(m: Measurement, key: tuple) -> np.ndarray:
@@ -439,9 +442,7 @@ def as_recorded(library: Sequence[Measurement], index: int, current: Measurement
                 rx_mask: np.ndarray | None = None) -> BaselineMatch:
     """Library entry ``index`` as the match of ``current`` without any stretch (the receivers ``rx_mask``
     keeps give the residual): what is judged when the stretch the search found cannot be trusted."""
-    rows = receiver_rows(current.n_rx, rx_mask)
-    residual = _relative_residual(current.traces[rows].astype(np.float64), library[index].traces[rows].astype(np.float64))
-    return BaselineMatch(index, 0.0, residual, library[index])
+    return warmed_match(library, index, current, 0.0, rx_mask)
 
 
 def thermometer_stretch(baseline: Measurement, current: Measurement) -> float | None:
@@ -487,13 +488,13 @@ def warmed_match(library: Sequence[Measurement], index: int, current: Measuremen
     as the match of ``current``, the receivers ``rx_mask`` keeps giving the residual; where the entry
     has no sample the current is its own reference, as in the search."""
     entry = library[index]
-    traces = entry.traces if stretch == 0.0 else stretch_traces(entry, stretch).astype(np.float32)
-    if stretch != 0.0:
-        uncovered = ~recorded(_sample_times_s(current) / (1.0 + stretch), entry)
-        traces[:, uncovered] = current.traces[:, uncovered]
+    if stretch != 0.0:  # else the entry itself, with what has been derived from it
+        at = _sample_times_s(current) / (1.0 + stretch)
+        traces = _own_reference_where_unrecorded(stretch_traces(entry, stretch), at, entry, current)
+        entry = replace(entry, traces=traces.astype(np.float32))
     rows = receiver_rows(current.n_rx, rx_mask)
-    residual = _relative_residual(current.traces[rows].astype(np.float64), traces[rows].astype(np.float64))
-    return BaselineMatch(index, stretch, residual, replace(entry, traces=traces))
+    residual = _relative_residual(current.traces[rows].astype(np.float64), entry.traces[rows].astype(np.float64))
+    return BaselineMatch(index, stretch, residual, entry)
 
 
 def unexplained(match: BaselineMatch, max_residual: float, why: str = "") -> NoValidBaseline:

@@ -4,6 +4,7 @@ This is the in-memory form of the interchange format described in docs/formats.m
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
@@ -106,6 +107,13 @@ class Measurement:
             and self.tx_axial_mm + self.tx_rx_distance_mm > self.pipe_length_mm
         ):
             raise MeasurementError("the Rx ring (tx_axial_mm + tx_rx_distance_mm) lies beyond pipe_length_mm")
+
+    def traces_digest(self) -> tuple[bytes, tuple[int, ...], str]:
+        """(SHA-1 of the traces' bytes, their shape, their dtype): what a ``derived`` key names the
+        traces by, so that traces changed in place are derived again."""
+        traces = np.ascontiguousarray(self.traces)
+        return (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), traces.shape,
+                traces.dtype.str)
 
     def derived(self, name: str, key: Hashable, compute: Callable[[], T]) -> T:
         """``compute()``, remembered with this record under ``name`` while ``key`` stays the same.

@@ -305,6 +305,7 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         max_residual=settings.max_residual, rx_mask=mask, mismatch=next((w for w in mismatches if w), None),
         keep_best=True, common_gain=settings.common_gain,
     )
+    limit = settings.max_compensated_stretch
     searched = None  # the search's stretch, when the thermometers overruled it
     if (settings.method == "multipath" and settings.thermometer and isinstance(match, BaselineMatch)
             and not match.residual <= THERMOMETERS_DECIDE_BEYOND):
@@ -315,12 +316,10 @@ def assess(current: Measurement, baselines: Sequence[Measurement], settings: Ass
         # Also where the search's stretch lies beyond the compensated range and theirs within it: the
         # entry as recorded (below) would leave the whole temperature change in.
         by_thermometers = at_thermometer_stretch(baselines, compatible, current, mask)
-        limit = settings.max_compensated_stretch
         if by_thermometers is not None and abs(by_thermometers.stretch) <= settings.max_stretch and (
                 disagrees_with_thermometers(match.stretch, by_thermometers.stretch)
                 or (limit is not None and abs(match.stretch) > limit >= abs(by_thermometers.stretch))):
             searched, match = match.stretch, by_thermometers
-    limit = settings.max_compensated_stretch
     beyond: NoValidBaseline | None = None  # the stretch bound's abstention, while the entry as recorded is judged
     refused = None
     if isinstance(match, BaselineMatch) and limit is not None and abs(match.stretch) > limit:

@@ -29,7 +29,6 @@ element model explains the baseline clearly better (``ELEMENTS_EVIDENCE``).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from typing import NamedTuple
 
@@ -119,9 +118,8 @@ def fit_sparse_ring(m: Measurement, model: PathModel, near_end_mm: float | None,
     after 1000 mm) they are one column, the two echoes' sum, and share one coefficient. An echo
     wholly outside the record reads 1.0 (unknown: keep its paths).
     """
-    traces = np.ascontiguousarray(m.traces)
-    key = (hashlib.sha1(traces.view(np.uint8).data, usedforsecurity=False).digest(), model, near_end_mm,
-           far_end_mm, fit_wrap, m.fs_hz, m.t0_s, m.velocity_m_s, m.excitation_hz, m.cycles)
+    key = (*m.traces_digest(), model, near_end_mm, far_end_mm, fit_wrap, m.fs_hz, m.t0_s, m.velocity_m_s,
+           m.excitation_hz, m.cycles)
 
     def compute() -> RingFit:
         plane = _fit(m, dataclasses.replace(model, tx_arcs_mm=()), near_end_mm, far_end_mm).unexplained

@@ -76,12 +76,12 @@ def recorded(at_s: np.ndarray, m: Measurement) -> np.ndarray:
 
 
 class ThermalStretch:
-    """``m``'s traces (the rows ``rows`` keeps) as the same pipe would record them with every wave
-    (1 + stretch) slower, at any times: values [n_rows, *times.shape]; zero outside the recorded
-    interval. ``stretch`` is a number or an array broadcasting against ``times``."""
+    """``m``'s traces as the same pipe would record them with every wave (1 + stretch) slower, at any
+    times: values [n_rx, *times.shape]; zero outside the recorded interval. ``stretch`` is a number
+    or an array broadcasting against ``times``."""
 
-    def __init__(self, m: Measurement, rows: np.ndarray | None = None) -> None:
-        traces = (m.traces if rows is None else m.traces[rows]).astype(np.float64)
+    def __init__(self, m: Measurement) -> None:
+        traces = m.traces.astype(np.float64)
         self.n_rows = traces.shape[0]
         self._resampler = Resampler.of(np.concatenate([traces, slope_traces(traces, m)]), m.t0_s, m.fs_hz)
 
