@@ -520,13 +520,13 @@ def _log_assessment(assessment: Assessment) -> None:
         log.warning("no map: %s", assessment.no_valid_baseline.reason)
     if assessment.strong_change is not None:
         change = assessment.strong_change
-        unstretched = ("" if change.refused_stretch is None else
-                       f" as recorded (the stretch search wanted {change.refused_stretch:+.2%}, beyond the range)")
-        if change.searched_stretch is not None:
-            unstretched += (f" warmed as the thermometers say ({assessment.baseline.stretch:+.3%}; the stretch search "
-                            f"wanted {change.searched_stretch:+.3%})" if assessment.baseline is not None else "")
+        how = ("" if change.refused_stretch is None else
+               f" as recorded (the stretch search wanted {change.refused_stretch:+.2%}, beyond the range)")
+        if change.searched_stretch is not None and assessment.baseline is not None:
+            how += (f" warmed as the thermometers say ({assessment.baseline.stretch:+.3%}; the stretch search "
+                    f"wanted {change.searched_stretch:+.3%})")
         log.warning("strong change: the baseline%s leaves %.3g of the record unexplained (limit %.3g), the defects "
-                    "located explain %.0f%% of it: reported as defects", unstretched, change.residual,
+                    "located explain %.0f%% of it: reported as defects", how, change.residual,
                     change.max_residual, 100 * change.explained)
     for fault in assessment.sensor_faults:
         log.warning("sensor fault on receiver %d (%.1f deg): %s; left out of the map",
