@@ -219,7 +219,20 @@ EXIT_DATABASE_UNUSABLE = 2  # the database cannot be used as it is (damaged, not
 
 
 def run(settings: GatewaySettings) -> int:
-    """Run until SIGTERM/SIGINT (exit 0), or until a loop's thread dies (exit 1, after a clean shutdown)."""
+    """Run until SIGTERM/SIGINT (exit 0), or until a loop's thread dies (exit 1, after a clean shutdown).
+
+    The signal handlers come first: a stop asked for while the database is opened (an upgrade of a
+    large file can take minutes) lets that finish, then exits 0 before any node is polled, instead of
+    the interpreter's default of dying mid-upgrade.
+    """
+    signalled = threading.Event()
+
+    def on_signal(signum, _frame):
+        log.info("received %s, shutting down", signal.Signals(signum).name)
+        signalled.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
     shown = safe_database_url(settings.database.url)
     try:
         db = open_database(settings.database.url, upgrade=True, check_integrity=True)
@@ -241,15 +254,11 @@ def run(settings: GatewaySettings) -> int:
         log.error("uplink: %s", exc)
         db.dispose()
         return 2  # as for any config error
-    signalled = threading.Event()
+    if signalled.is_set():  # asked to stop while the database was being opened: nothing started yet
+        db.dispose()
+        log.info("gateway stopped before polling any node")
+        return 0
     threading.excepthook = _log_loop_death
-
-    def on_signal(signum, _frame):
-        log.info("received %s, shutting down", signal.Signals(signum).name)
-        signalled.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
     gateway.start()
     log.info("gateway started: %d node(s), database %s", len(gateway.workers), shown)
     sd_notify("READY=1\nSTATUS=polling nodes")
