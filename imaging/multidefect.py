@@ -16,14 +16,13 @@ a structured part of a strong defect's echoes, which the next pass can image as 
 defect. So a later peak is reported only if adding a scatterer there explains more of the
 record than letting the found defects' echoes follow a directional pattern instead (each
 path's amplitude a first-order circular harmonic of the receiver's bearing, PATTERN_ORDERS)
-and than a second point a quarter wavelength beside a found defect (EXTENT_WAVELENGTHS: a
-finite defect, or one found a few mm off; ``_Search.beats_patterns``); otherwise it is ruled
-out and the search looks further. The alternatives only judge, they are never what is
-subtracted: removing the found defects' echoes with the pattern (tried, 2026-12-02) cut
-spurious defects further but also fitted away part of a weak second notch's echoes wherever
-its paths overlapped the first's (DI ~0.05 -> ~0.03), so some were lost (mock physics,
-bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on either end of the
-imaged span (within EDGE_MM of the Tx or Rx ring) is not a located scatterer —
+and than a second point a quarter wavelength beside a found defect (EXTENT_WAVELENGTHS: a finite
+defect, or one found a few mm off; ``_Search.beats_patterns``); otherwise it is ruled out and the search
+looks further. The alternatives only judge, they are never what is subtracted: removing the
+found defects' echoes with the pattern (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
+second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
+were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on
+either end of the imaged span (within EDGE_MM of the Tx or Rx ring) is not a located scatterer —
 the map would still rise beyond the span; it is what changes at a ring (its transducers, what
 leaks or converts there, the direct wave's shadow of a found defect) — so it is not reported, but
 its echoes are fitted and removed with the defects' (they would bias them). A last pass re-locates
@@ -214,7 +213,7 @@ class _Search:
 
     def beside_fit(self, found: list[Found]) -> float:
         """The least energy left by the ``found`` defects' echoes and one more point beside one of them,
-        EXTENT_WAVELENGTHS wavelengths away along the axis or round the pipe (``beats_patterns``)."""
+        EXTENT_WAVELENGTHS of a wavelength away along the axis or round the pipe (``beats_patterns``)."""
         step_mm = EXTENT_WAVELENGTHS * self.scene.model.wavelength_mm
         step_deg = step_mm / self.scene.circumference_mm * 360.0
         points = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
