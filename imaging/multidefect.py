@@ -15,11 +15,10 @@ A real scatterer's field is directional, the map's model is an isotropic point: 
 a structured part of a strong defect's echoes, which the next pass can image as a spurious
 defect. So a later peak is reported only if adding a scatterer there explains more of the
 record than letting the found defects' echoes follow a directional pattern instead (each
-path's amplitude a first-order circular harmonic of the receiver's bearing, PATTERN_ORDERS)
-and than a second point a quarter wavelength beside a found defect (EXTENT_WAVELENGTHS: a finite
-defect, or one found a few mm off; ``_Search.beats_patterns``); otherwise it is ruled out and the search
-looks further. The alternatives only judge, they are never what is subtracted: removing the
-found defects' echoes with the pattern (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
+path's amplitude a first-order circular harmonic of the receiver's bearing, PATTERN_ORDERS;
+``_Search.beats_patterns``); otherwise it is ruled out and the search looks further. The pattern
+is only the alternative hypothesis, never what is subtracted: removing the found defects' echoes
+with it (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
 second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
 were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on
 either end of the imaged span (within EDGE_MM of the Tx or Rx ring) is not a located scatterer —
@@ -62,8 +61,6 @@ PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects'
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
 PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
 #                    (1.2 removes most spurious defects but loses weak second notches: docs/imaging.md)
-EXTENT_WAVELENGTHS = 0.25  # ... and than a second point this many wavelengths beside a found defect
-#                            (along the axis or round the pipe): the same unknowns as the candidate
 
 
 class MultiDefectError(ValueError):
@@ -191,40 +188,13 @@ class _Search:
 
     def beats_patterns(self, found: list[Found], with_item: list[np.ndarray]) -> bool:
         """Does adding a scatterer at a candidate (the map's model; ``with_item``: the fits of
-        ``found`` and the candidate) explain more of the record than the alternatives for what the
-        ``found`` defects' echoes really are?
-
-        - directional: each path's amplitude a circular harmonic of the receiver's bearing up to
-          PATTERN_ORDERS (4 unknowns per path and found defect, against the candidate's 2); a tie
-          goes to the pattern;
-        - extended: a second point beside a found defect, EXTENT_WAVELENGTHS away along the axis or
-          round the pipe (``beside_fit``: the best of those four places, each fitted like the
-          candidate, with the same unknowns). A finite defect scatters from its edges, not from a
-          point: its phase centre moves with the direction it scatters in (measured on the dev
-          set's 16-ring notch: the forward one 14 mm behind the notch), and a found position a few
-          mm off leaves echoes of the same kind. The candidate must explain more than a point
-          there does.
-        """
+        ``found`` and the candidate) explain more of the record than letting the ``found``
+        defects' echoes follow a directional pattern instead (each path's amplitude a circular
+        harmonic of the receiver's bearing up to PATTERN_ORDERS)? The candidate has the fewer
+        unknowns (2 per path, against 4 per path and found defect), so a tie goes to the pattern."""
         explained = float(np.sum((self.original - sum(with_item))**2))
         patterned = float(np.sum((self.original - sum(self.fits(found, orders=PATTERN_ORDERS)))**2))
-        if not explained * PATTERN_MARGIN < patterned:
-            return False
-        return explained < self.beside_fit(found)
-
-    def beside_fit(self, found: list[Found]) -> float:
-        """The least energy left by the ``found`` defects' echoes and one more point beside one of them,
-        EXTENT_WAVELENGTHS of a wavelength away along the axis or round the pipe (``beats_patterns``)."""
-        step_mm = EXTENT_WAVELENGTHS * self.scene.model.wavelength_mm
-        step_deg = step_mm / self.scene.circumference_mm * 360.0
-        points = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
-        best = math.inf
-        for z, a in points:
-            for beside in ((z - step_mm, a), (z + step_mm, a), (z, a - step_deg), (z, a + step_deg)):
-                fits = fit_smooth_echoes(self.original, self.scene, [*points, beside], orders=0)
-                if self.scene.project is not None:
-                    fits = [self.scene.project(f) for f in fits]
-                best = min(best, float(np.sum((self.original - sum(fits))**2)))
-        return best
+        return explained * PATTERN_MARGIN < patterned
 
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
         runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)

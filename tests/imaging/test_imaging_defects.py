@@ -6,8 +6,6 @@ import numpy as np
 import pytest
 
 from imaging.echofit import burst_pair, fit_smooth_echoes
-from imaging.localize import Estimate
-from imaging.multidefect import Found, _Search
 from imaging.multipath import path_model_for
 from imaging.paths import scalar_paths
 from imaging.pipeline import AssessSettings, assess
@@ -160,21 +158,3 @@ def test_a_directional_echo_is_removed_by_a_first_order_pattern_and_not_by_one_a
     left_0 = echo - sum(fit_smooth_echoes(echo, scene, [(z, angle)], orders=0))
     assert float(np.sum(left_1**2)) < 1e-20 * energy
     assert float(np.sum(left_0**2)) > 0.1 * energy
-
-
-def test_echoes_of_a_defect_found_a_few_mm_off_are_explained_by_a_point_beside_it():
-    # A later peak must explain more than a second point a quarter wavelength beside a found defect
-    # (multidefect.EXTENT_WAVELENGTHS, along the axis or round the pipe; the same unknowns as the
-    # candidate). That is what a finite defect's echoes, or a found position a few mm off, leave:
-    # here the scatterer is 6 mm axially and 3 mm round from where it was found; the found point
-    # alone leaves a fair share of its echoes (what the next map would image as a second "defect"),
-    # with a point beside it almost none.
-    base, cur = baseline_and_scatterers([(206.0, 103.0, 0.05)])
-    scene = Scene.of(base, path_model_for(base))
-    residual = cur.traces - base.traces
-    energy = float(np.sum(residual**2))
-    search = _Search(residual, scene)
-    found = [Found(Estimate(200.0, 100.0, 0.1), None, 0.0)]  # type: ignore[arg-type]  (no map needed)
-    left_point = float(np.sum((residual - sum(search.fits(found)))**2))
-    assert left_point > 0.05 * energy  # measured 0.13
-    assert search.beside_fit(found) < 0.25 * left_point  # measured 0.10 of it
