@@ -472,13 +472,11 @@ def at_thermometer_stretch(library: Sequence[Measurement], compatible: Sequence[
     """The compatible library entry nearest ``current`` in temperature, warmed by the stretch the two
     temperatures predict (``warmed_match``); None when no compatible entry has a temperature or
     ``current`` has none."""
-    known = [(abs(current.temperature_c - library[i].temperature_c), i) for i in compatible
-             if thermometer_stretch(library[i], current) is not None]
+    known = [(abs(current.temperature_c - library[i].temperature_c), i, stretch) for i in compatible
+             if (stretch := thermometer_stretch(library[i], current)) is not None]
     if not known:
         return None
-    index = min(known)[1]
-    stretch = thermometer_stretch(library[index], current)
-    assert stretch is not None
+    _, index, stretch = min(known)
     return warmed_match(library, index, current, stretch, rx_mask)
 
 

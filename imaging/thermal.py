@@ -13,8 +13,8 @@ true stretch 1.8e-6 to 1.9e-5: bench/bench_thermal.py).
 With k_s the filter that turns the burst x(t) into x((1 + s) t), the warm record is (b * k_s)
 stretched by (1 + s), up to a gain 1 / (1 + s): stretching g * x_s gives g stretched * x. To
 first order in s (what the second order leaves, measured on a unit burst: 5.7e-4 of its amplitude
-at s = 0.15 %, 2.5e-3 at 0.4 %, tests/imaging/test_thermal.py), b * k_s = b + s b', where b' is b filtered by k' = d k_s / ds at 0, the filter that
-turns x(t) into t x'(t) (x' its time derivative). k' is formed in the burst's band (a regularised
+at s = 0.15 %, 2.5e-3 at 0.4 %, tests/imaging/test_thermal.py), b * k_s = b + s b', where b' is b
+filtered by k' = d k_s / ds at 0, the filter that turns x(t) into t x'(t) (x' its time derivative). k' is formed in the burst's band (a regularised
 spectral ratio) and is zero outside it, so out-of-band noise is stretched as before, never
 amplified. Pure functions on arrays; the stretch is applied by cubic B-spline resampling
 (imaging/resample.py).
