@@ -108,14 +108,15 @@ def _local_loops(feature, rows, rx_angles_deg, axial_mm, angle_deg, offset, sign
             if diff == -180.0:
                 diff = 180.0
             arc = diff * circumference_mm / 360.0
-            other = arc - circumference_mm if arc >= 0 else arc + circumference_mm
+            direction = circumference_mm if arc >= 0 else -circumference_mm
             for ii in range(axial_mm.shape[0]):
                 z = axial_mm[ii]
                 for f in range(offset.shape[0]):
                     incident = abs(offset[f] + sign[f] * z)
                     dz = image[f] - z
                     for wrap in range(wraps):
-                        leg = arc if wrap == 0 else other
+                        turns = (wrap + 1) // 2  # paths.wrap_turns: 0, -1, +1, -2, +2, ...
+                        leg = arc + (-turns if wrap % 2 else turns) * direction
                         r_mm = math.sqrt(dz * dz + leg * leg)  # libm hypot is ~5x slower; mm: no overflow
                         w = factor[f] * math.sqrt(wavelength_mm / max(r_mm, 0.5 * wavelength_mm))
                         if polarization and r_mm > 0:

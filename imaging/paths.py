@@ -10,7 +10,9 @@ a pipe end reflects it (image method), so a point at z is hit by
 
 The point re-radiates a cylindrical wave; it reaches receiver m directly, or after reflecting
 at the far end (image of the Rx ring at 2F - D) or the near end (image at -2A - D), each
-either way round the pipe (two wraps). Expected amplitude of a path, per unit scatterer
+either way round the pipe (two wraps; the echo fit of imaging/multidefect.py follows it further,
+once more round either way per two wraps more: the scattered wave keeps circling the pipe within
+the record). Expected amplitude of a path, per unit scatterer
 strength: the ends' reflection coefficients, 2-D spreading sqrt(lambda / r) (softened within
 half a wavelength), and, for torsional (circumferentially polarised) receivers, |cos| of the
 arrival direction from the pipe axis: an SH wave arriving at angle phi moves the wall
@@ -34,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+MAX_WRAPS = 16  # the legs a path model may follow round the pipe (8 turns either way)
 NEGLIGIBLE_WEIGHT = 1e-12  # an incident term this weak (a pixel on the Tx ring, off every element) counts nothing
 
 
@@ -62,7 +65,8 @@ class PathModel:
     ``circumference_mm`` is the wrap length the scattered wave travels round the pipe (the
     mid-wall circumference when the wall thickness is known). ``near_end_mm``/``far_end_mm``
     are the pipe ends' axial positions from the Tx ring (None: unknown, not modelled).
-    ``wraps`` 1 keeps only the shorter way round, 2 both. Paths whose end-reflection factor is
+    ``wraps`` 1 keeps only the shorter way round, 2 both, 3 and 4 also one more turn round the
+    pipe the shorter and the other way, and so on (``wrap_turns``). Paths whose end-reflection factor is
     below ``min_factor`` are dropped (e.g. every end path of a pipe with absorbing ends).
     ``tx_arcs_mm``: the Tx elements' positions round the wrap circumference (mm from angle 0)
     when the incident wave is modelled element by element (module docstring), with
@@ -85,8 +89,8 @@ class PathModel:
     def __post_init__(self) -> None:
         if not (self.tx_rx_distance_mm > 0 and self.circumference_mm > 0 and self.wavelength_mm > 0):
             raise PathModelError("distances and wavelength must be positive")
-        if self.wraps not in (1, 2):
-            raise PathModelError(f"wraps must be 1 or 2, got {self.wraps}")
+        if not 1 <= self.wraps <= MAX_WRAPS:
+            raise PathModelError(f"wraps must be 1 to {MAX_WRAPS}, got {self.wraps}")
         if self.tx_images < 0:
             raise PathModelError(f"tx_images must be >= 0, got {self.tx_images}")
         if not all(math.isfinite(a) for a in self.tx_arcs_mm):
@@ -181,12 +185,18 @@ def signed_arc_mm(rel_angle_deg: np.ndarray, circumference_mm: float) -> np.ndar
     return wrapped * (circumference_mm / 360.0)
 
 
+def wrap_turns(wrap: int) -> int:
+    """Whole turns round the pipe added to the shorter way's arc on leg ``wrap``, counted in the
+    arc's own direction: 0 (the shorter way), -1 (the other way), +1, -2, +2, ..."""
+    turns = (wrap + 1) // 2
+    return -turns if wrap % 2 else turns
+
+
 def wrap_offsets_mm(arc_mm: np.ndarray, circumference_mm: float, wraps: int) -> list[np.ndarray]:
-    """The circumferential legs to take: the shorter way round, and (wraps=2) the other way."""
-    legs = [arc_mm]
-    if wraps == 2:
-        legs.append(arc_mm - np.where(arc_mm >= 0, 1.0, -1.0) * circumference_mm)
-    return legs
+    """The circumferential legs to take: the shorter way round, (wraps >= 2) the other way, then
+    each once more round the pipe, and so on (``wrap_turns``); ``arc_mm`` the shorter way's."""
+    direction = np.where(arc_mm >= 0, 1.0, -1.0) * circumference_mm
+    return [arc_mm + wrap_turns(k) * direction if k else arc_mm for k in range(wraps)]
 
 
 def path_weight(factor: float | np.ndarray, dz_mm: np.ndarray, r_mm: np.ndarray, model: PathModel) -> np.ndarray:
@@ -305,7 +315,8 @@ def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float,
     """The same paths for one pixel, written out with scalar math (the literal oracle's model)."""
     circ = model.circumference_mm
     arc = _scalar_arc(rel_angle_deg, circ)
-    legs = [arc] if model.wraps == 1 else [arc, arc - (1.0 if arc >= 0 else -1.0) * circ]
+    direction = (1.0 if arc >= 0 else -1.0) * circ
+    legs = [arc + wrap_turns(k) * direction for k in range(model.wraps)]
     pixel_deg = rel_angle_deg + rx_angle_deg
     out = []
     for f, fam in enumerate(model.families()):

@@ -1,4 +1,6 @@
 """Every fast path of the imaging equals its literal oracle: compiled kernels, local maps, echo fit, resampling."""
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -111,7 +113,8 @@ def test_smooth_echo_fit_equals_the_literal_fit(data):
     positions = [(data.draw(st.floats(-20, 420)), data.draw(st.floats(0, 360)))
                  for _ in range(data.draw(st.integers(1, 2)))]
     orders = data.draw(st.integers(0, 2))
-    scene = Scene.of(base, path_model_for(base, model_ends=ends), rx_mask=rng.random(base.n_rx) > 0.2)
+    model = dataclasses.replace(path_model_for(base, model_ends=ends), wraps=data.draw(st.sampled_from([2, 6])))
+    scene = Scene.of(base, model, rx_mask=rng.random(base.n_rx) > 0.2)
     residual = rng.standard_normal(base.traces.shape)
     fast = fit_smooth_echoes(residual, scene, positions, orders=orders)
     slow = literal_fit_smooth_echoes(residual, scene, positions, orders=orders)

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from imaging.analysis import analyze
 from imaging.grid import Grid
 from imaging.multipath import literal_multipath_pixels, multipath_pixels
-from imaging.paths import PathModel
+from imaging.paths import PathModel, PathModelError, wrap_offsets_mm
 from imaging.scene import Scene
 from imaging.timing import surface_distance_mm
 from tests.support.synthetic import CIRCUMFERENCE_MM, baseline_and_scatterers
@@ -30,7 +30,7 @@ def random_problem(draw):
         near_reflection=draw(st.floats(0, 1)),
         far_reflection=draw(st.floats(0, 1)),
         polarization=draw(st.booleans()),
-        wraps=draw(st.sampled_from([1, 2])),
+        wraps=draw(st.sampled_from([1, 2, 3, 6])),  # the map's 2; the echo fit's more
     )
     if draw(st.booleans()):  # a Tx ring modelled element by element (several paths per group and receiver)
         arcs = draw(st.lists(st.floats(0, model.circumference_mm), min_size=1, max_size=3))
@@ -64,6 +64,18 @@ def test_fast_multipath_map_matches_the_literal_sum(problem):
     literal = literal_multipath_pixels(feature, scene, normalise=normalise)
     scale = max(float(np.abs(literal).max()), 1e-12)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)  # single-precision gather
+
+
+def test_a_path_model_follows_the_scattered_wave_round_the_pipe_either_way_turn_by_turn():
+    # Legs: the shorter way, the other way, then each once more round the pipe, alternately.
+    for arc in (30.0, -30.0):
+        way = 1.0 if arc > 0 else -1.0
+        legs = [float(x) for x in wrap_offsets_mm(np.array(arc), 360.0, 6)]
+        assert legs == [arc, arc - way * 360.0, arc + way * 360.0, arc - way * 720.0, arc + way * 720.0,
+                        arc - way * 1080.0]
+    assert [float(x) for x in wrap_offsets_mm(np.array(30.0), 360.0, 2)] == [30.0, -330.0]
+    with pytest.raises(PathModelError, match="wraps"):
+        PathModel(400.0, 360.0, 38.0, wraps=0)
 
 
 @pytest.mark.parametrize("axial_mm, angle_deg", [(100, 90), (200, 157.5), (300, 315)])
