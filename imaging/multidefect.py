@@ -21,14 +21,24 @@ is only the alternative hypothesis, never what is subtracted: removing the found
 with it (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
 second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
 were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on
-either end of the imaged span (within EDGE_MM of the Tx or Rx ring) is not a located scatterer —
-the map would still rise beyond the span; it is what changes at a ring (its transducers, what
-leaks or converts there, the direct wave's shadow of a found defect) — so it is not reported, but
-its echoes are fitted and removed with the defects' (they would bias them). A last pass re-locates
-each defect (within REFINE_RADIUS_MM) with the others' echoes, those maxima's included, removed.
+either end of the imaged span (within EDGE_MM of the Tx or Rx ring), or in a ring's near field
+(within NEAR_RING_WAVELENGTHS), is not a located scatterer — on the span's end the map would still
+rise beyond it, in the near field its far-field paths do not hold; it is what changes at a ring (its
+transducers, what leaks or converts there, the direct wave's shadow of a found defect) — so it is
+not reported, but its echoes are fitted and removed with the defects' (they would bias them); nor
+does such a maximum count as the rival that makes a later peak unresolved. A last pass re-locates
+each defect (within REFINE_RADIUS_MM) with the others' echoes, those maxima's included, removed; a
+later defect it moves into a ring's near field is dropped.
+
+The found defects' echoes are fitted along FIT_WRAPS legs round the pipe, more than the map's two:
+the scattered wave keeps circling the pipe within the record (full-wave dev set, a notch's echoes
+at its true position: the two legs leave 34 % of the record, six 7 %), and what the fit leaves of
+the later turns otherwise images as spurious later defects. The map keeps its two (more legs in the
+map itself were not tried).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +52,7 @@ from imaging.grid import Grid
 from imaging.localize import Estimate, exclusion_mask, refine_peak
 from imaging.multipath import local_multipath_pixels, multipath_pixels
 from imaging.scene import Scene
+from imaging.timing import MM_PER_M
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
@@ -57,6 +68,9 @@ COARSE_MARGIN = 0.5  # a later coarse peak below this fraction of the bar is not
 RUNNER_UP_CANDIDATES = 3  # coarse local maxima refined to find a confidence's competing peak
 FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on the window's edge
 EDGE_MM = 2.0  # a later peak this close to an end of the imaged span is a boundary maximum, not a located one
+NEAR_RING_WAVELENGTHS = 0.5  # ... and one this close to a ring (in wavelengths) lies in its near field, where
+#                             the map's far-field paths do not hold: what changes at the ring, not a scatterer
+FIT_WRAPS = 6  # the found defects' echoes are fitted along this many legs round the pipe (the map: 2)
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
 PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
@@ -127,6 +141,10 @@ def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, 
     return refine_peak(local, int(a), int(b))
 
 
+LocalImage = Callable[[Grid], np.ndarray]  # a feature's map on a small grid
+Allowed = Callable[[Grid], np.ndarray]  # the pixels of a grid a peak may lie on
+
+
 def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple[int, int]]:
     """The ``count`` highest finite pixels that are >= their 8 neighbours (angle wraps when ``wraps``)."""
     padded = np.pad(candidates, ((1, 1), (0, 0)), constant_values=-np.inf)
@@ -144,20 +162,18 @@ def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple
 
 
 def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimate: Estimate,
-               circumference_mm: float) -> float:
+               circumference_mm: float, among: Allowed | None = None) -> float:
     """The highest peak more than CONFIDENCE_EXCLUSION_MM from the estimate, refined like the estimate
-    (the best of the RUNNER_UP_CANDIDATES highest local maxima of the coarse map there)."""
+    (the best of the RUNNER_UP_CANDIDATES highest local maxima of the coarse map there), ``among``
+    the pixels it allows (default: all)."""
     def outside(g: Grid) -> np.ndarray:
-        return ~exclusion_mask(g, estimate.axial_mm, estimate.angle_deg, CONFIDENCE_EXCLUSION_MM, circumference_mm)
+        away = ~exclusion_mask(g, estimate.axial_mm, estimate.angle_deg, CONFIDENCE_EXCLUSION_MM, circumference_mm)
+        return away if among is None else away & among(g)
 
     candidates = np.where(outside(di_map.grid), di_map.pixels, -np.inf)
     maxima = _local_maxima(candidates, di_map.grid.wraps_in_angle, RUNNER_UP_CANDIDATES)
     return max((fine_peak(image_local, di_map, i, j, outside, RUNNER_UP_HALF_WIDTH).di for i, j in maxima),
                default=0.0)
-
-
-LocalImage = Callable[[Grid], np.ndarray]  # a feature's map on a small grid
-Allowed = Callable[[Grid], np.ndarray]  # the pixels of a grid a peak may lie on
 
 
 @dataclass(frozen=True)
@@ -176,13 +192,16 @@ class _Search:
     def local_image(self, values: np.ndarray) -> LocalImage:
         return lambda local: local_multipath_pixels(values, self.scene.with_grid(local))
 
-    def fits(self, found: list[Found], *, shared: bool = True, orders: int = 0) -> list[np.ndarray]:
+    def fits(self, found: list[Found], *, shared: bool = True, orders: int = 0,
+             wraps: int | None = None) -> list[np.ndarray]:
         """Every found defect's echoes, fitted jointly, put through the scene's filter. ``shared``: each
         path's amplitude shared by all receivers, a circular harmonic of their bearing up to ``orders``
-        (``fit_smooth_echoes``), else one per path and receiver (``fit_echoes``)."""
+        (``fit_smooth_echoes``), else one per path and receiver (``fit_echoes``); each path followed
+        along ``wraps`` legs round the pipe (imaging/paths.py ``wrap_turns``; default FIT_WRAPS)."""
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
-        fits = (fit_smooth_echoes(self.original, self.scene, positions, orders=orders) if shared
-                else fit_echoes(self.original, self.scene, positions))
+        scene = dataclasses.replace(self.scene, model=dataclasses.replace(self.scene.model, wraps=wraps or FIT_WRAPS))
+        fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders) if shared
+                else fit_echoes(self.original, scene, positions))
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
 
@@ -237,6 +256,9 @@ def find_defects(
             return mask
         return allowed
 
+    def off_the_rings(g: Grid) -> np.ndarray:
+        return np.broadcast_to(~_near_the_rings(scene, g.axial_mm)[:, None], g.shape)
+
     rejected: list[Found] = []
     fitted: list[Found] = []  # found defects and maxima on a ring, in the order of their echoes in ``fits``
     reported: list[bool] = []  # per ``fitted``: a found defect (True) or a maximum on a ring, never reported
@@ -258,7 +280,7 @@ def find_defects(
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
-        if found and _on_the_span_edge(grid, estimate):
+        if found and _near_a_ring(scene, estimate):
             # A maximum on the Tx or Rx ring is not located (the map would still rise beyond the
             # imaged span): a change at a ring (its transducers, what leaks or converts there, the
             # direct wave's shadow), not a defect between them. Its echoes are fitted with the
@@ -269,7 +291,10 @@ def find_defects(
             residual = search.original - sum(fits)
             continue
         item = search.found(values, di_map, estimate)
-        if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
+        # Its rival is sought off the rings: a maximum there is what changes at a ring (above), never
+        # a defect, and not the flat field of fit leftovers this test is for.
+        if found and _runner_up(search.local_image(values), di_map, estimate, circumference_mm,
+                                off_the_rings) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
         with_item = search.fits(fitted + [item])
         if found and not search.beats_patterns(fitted, with_item):
@@ -299,9 +324,28 @@ def explained_by_defects(residual: np.ndarray, scene: Scene, found: list[Found])
     located = [f for f in found if not _on_the_span_edge(scene.grid, f.estimate)]
     if not located or not energy > 0:
         return 0.0
-    fits = _Search(original, scene).fits(located, orders=PATTERN_ORDERS)
+    fits = _Search(original, scene).fits(located, orders=PATTERN_ORDERS, wraps=scene.model.wraps)
     left = original - sum(fits)
     return max(0.0, 1.0 - float(np.sum(left * left)) / energy)
+
+
+def _near_a_ring(scene: Scene, estimate: Estimate) -> bool:
+    """Is a later peak on an end of the imaged span or within NEAR_RING_WAVELENGTHS of the Tx or Rx ring?
+
+    There the scattered wave reaches the nearest receivers with (nearly) the direct arrival and
+    the map's path model (far-field spreading, softened within half a wavelength) does not hold:
+    a maximum there is what changes on a few receivers' direct arrival (a found defect's forward
+    shadow, a transducer's gain), measured on full-wave records 8-14 mm before the Rx ring in line
+    with a receiver, not a scatterer located between the rings."""
+    return bool(_near_the_rings(scene, np.array([estimate.axial_mm]))[0])
+
+
+def _near_the_rings(scene: Scene, axial_mm: np.ndarray) -> np.ndarray:
+    """Per axial position: on an end of the imaged span (EDGE_MM) or within NEAR_RING_WAVELENGTHS of a ring."""
+    near_mm = NEAR_RING_WAVELENGTHS * scene.velocity_m_s * MM_PER_M / scene.excitation_hz
+    span = scene.grid.axial_mm
+    edge = (axial_mm <= span[0] + EDGE_MM) | (axial_mm >= span[-1] - EDGE_MM)
+    return edge | (np.abs(axial_mm) < near_mm) | (np.abs(axial_mm - scene.model.tx_rx_distance_mm) < near_mm)
 
 
 def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
@@ -339,5 +383,7 @@ def _refine(search: _Search, found: list[Found], fits: list[np.ndarray], report:
             continue
         a, b = np.unravel_index(int(np.argmax(candidates)), candidates.shape)
         estimate = fine_peak(search.local_image(values), di_map, int(a), int(b), near)
+        if refined and _near_a_ring(search.scene, estimate):
+            continue  # a later defect re-located onto a ring: what changes there, not a located one
         refined.append(search.found(values, di_map, estimate))
     return sorted(refined, key=lambda f: -f.estimate.di)

@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from imaging import multidefect
 from imaging.echofit import burst_pair, fit_smooth_echoes
 from imaging.multipath import path_model_for
 from imaging.paths import scalar_paths
@@ -13,7 +14,7 @@ from imaging.scene import Scene
 from imaging.severity import SECONDS_PER_MONTH, TrendError, severity_trend
 from imaging.timing import surface_distance_mm
 from mocknode.physics import Acquisition, quantise_volts, simulate_volts
-from mocknode.scenario import DefectSpec, NodeScenario, NotchSize, PipeSpec
+from mocknode.scenario import DefectSpec, ExcitationSpec, NodeScenario, NotchSize, PipeSpec, RingSpec
 from tests.support.synthetic import CIRCUMFERENCE_MM, baseline_and_scatterers
 
 SETTINGS = AssessSettings()
@@ -58,6 +59,19 @@ def test_a_later_maximum_on_a_ring_is_fitted_away_but_not_reported_as_a_defect()
     defects = assess(cur, [base], SETTINGS).defects
     assert len(defects) == 1
     assert _errors(defects, [(200.0, 100.0)])[0] < 20.0
+
+
+def test_a_later_maximum_within_half_a_wavelength_of_a_ring_is_not_reported(monkeypatch):
+    # In a ring's near field the map's far-field paths do not hold; on full-wave records the
+    # maxima there (8-14 mm before the Rx ring, in line with a receiver) were a found defect's
+    # shadow on the direct arrival. A weaker scatterer 6 mm before the Rx ring is therefore not
+    # reported (the known cost), though it is without the rule.
+    base, cur = baseline_and_scatterers([(200.0, 100.0, 0.05), (394.0, 100.0, 0.03)], noise_rms=5e-4, seed=2)
+    defects = assess(cur, [base], SETTINGS).defects
+    assert len(defects) == 1
+    assert _errors(defects, [(200.0, 100.0)])[0] < 20.0
+    monkeypatch.setattr(multidefect, "NEAR_RING_WAVELENGTHS", 0.0)
+    assert len(assess(cur, [base], SETTINGS).defects) == 2
 
 
 def test_a_dead_receiver_is_a_sensor_fault_not_damage():
@@ -135,6 +149,36 @@ def test_a_shallow_second_notch_is_still_found_beside_a_deep_one(first, second):
               for z, a in (first, second)]
     assert max(errors) < 10.0
     assert result.defects[0].di > 1.5 * result.defects[1].di  # the shallow one is clearly the weaker
+
+
+def test_a_maximum_at_a_ring_is_not_the_rival_that_hides_a_defect(monkeypatch):
+    # An 8-ring mass at 100 mm imaged against a 3 degC colder baseline without compensation: the
+    # first "defect" is the Tx ring's change (what the temperature does there), then the mass.
+    # The mass's rival peaks were more Tx-ring maxima, as high as the mass (0.96x), so the mass
+    # read as a flat field of fit leftovers and was lost; ring maxima are not its rivals now.
+    def record(defects, temperature_c, seed):
+        scn = NodeScenario(node_id="m", pipe=PipeSpec(ends="reflecting", wall_mm=4.0),
+                           rings=RingSpec(n_transducers=8), excitation=ExcitationSpec(frequency_hz=75e3),
+                           defects=defects)
+        return _mock_record(scn, temperature_c, seed)
+
+    settings = AssessSettings(wall_mm=4.0, compensate=False)
+    pairs = [(record([], 20.0, 2 * k), record([DefectSpec(kind="mass", axial_mm=100.0, angle_deg=90.0)], 23.0,
+                                              2 * k + 1)) for k in range(4)]
+
+    def found() -> int:
+        count = 0
+        for baseline, current in pairs:
+            defects = assess(current, [baseline], settings).defects
+            count += any(surface_distance_mm(d.axial_mm, d.angle_deg, 100.0, 90.0, current.circumference_mm) < 10.0
+                         for d in defects)
+        return count
+
+    assert found() == len(pairs)
+    any_rival = multidefect._runner_up
+    monkeypatch.setattr(multidefect, "_runner_up", lambda image, di_map, estimate, circumference_mm, among=None:
+                        any_rival(image, di_map, estimate, circumference_mm))
+    assert found() < len(pairs)
 
 
 def test_a_directional_echo_is_removed_by_a_first_order_pattern_and_not_by_one_amplitude():
