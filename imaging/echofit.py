@@ -8,8 +8,9 @@ Gram matrix below FIT_RCOND of the largest are dropped), and each position's fit
 are returned separately.
 
 ``fit_echoes`` builds the Gram matrix from a table of the burst pair's partial products at
-each lag (the columns are shifted, possibly cut, copies of two fixed shapes), gathers only
-each column's own samples for the right-hand side and the echoes, and solves every receiver at once; ``literal_fit_echoes`` builds each column as
+each lag (the columns are shifted, possibly cut, copies of two fixed shapes), sums only
+each column's own samples for the right-hand side and the echoes (imaging/fitkernels.py:
+compiled with numba, numpy fallback), and solves every receiver at once; ``literal_fit_echoes`` builds each column as
 a full-length vector and solves receiver by receiver: the test oracle. ``fit_smooth_echoes``
 shares each path's amplitude across the receivers, optionally as a circular harmonic of their
 bearing (its oracle: ``literal_fit_smooth_echoes``). A model whose coherence groups hold several
@@ -25,6 +26,7 @@ from functools import lru_cache
 import numpy as np
 from scipy import fft as sp_fft
 
+from imaging.fitkernels import normal_equations, synthesise
 from imaging.paths import coherence_groups, scalar_paths, stacked_paths
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
@@ -71,33 +73,6 @@ def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.n
     _groups, length, _w = stacked_paths(scene.model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
     samples = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     return np.ascontiguousarray(samples.transpose(1, 2, 0))
-
-
-def _normal_equations(
-    residual: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray, shapes: np.ndarray,
-    table: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per receiver, the Gram matrix and right-hand side of the burst columns starting at ``starts``
-    (shape ``kind``: burst or quadrature twin; ``valid`` columns only), and the zero-padded residual
-    with each column's sample indices into it: (gram [m, a, b], rhs [m, a], padded, window [m, a, u])."""
-    n_rx, n = residual.shape
-    size = shapes.shape[1]
-    # Gram: overlap of each pair inside the record, as a difference of partial products.
-    ka, kb = starts[:, :, None], starts[:, None, :]
-    lo = np.maximum(np.maximum(ka, kb), 0)
-    hi = np.minimum(np.minimum(ka, kb) + size, n)
-    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
-    xa, xb = kind[:, :, None], kind[:, None, :]
-    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
-    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
-                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
-    # Right-hand side: each column's samples times the residual's (zero outside the record).
-    padded = np.zeros((n_rx, n + 2 * size))
-    padded[:, size:size + n] = residual
-    window = (size + starts)[:, :, None] + np.arange(size)  # [m, column, u]: indices into ``padded``
-    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
-    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
-    return gram, rhs, padded, window
 
 
 def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int) -> np.ndarray:
@@ -185,13 +160,10 @@ def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, 
     order = np.argsort(~valid, axis=1, kind="stable")[:, : max(1, int(valid.sum(axis=1).max()))]
     starts, kind, owner, valid = (np.take_along_axis(x, order, axis=1) for x in (starts, kind, owner, valid))
     starts = np.where(valid, starts, 0)
-    gram, rhs, padded, window = _normal_equations(residual, starts, kind, valid, shapes, table)
+    gram, rhs = normal_equations(residual, starts, kind, valid, shapes, table)
     coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
     # Each position's echoes: every column's coefficient times its shape, added at its samples.
-    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * padded.shape[1] + window
-    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes[kind]
-    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * padded.size)
-    return [np.ascontiguousarray(e[:, size:size + n]) for e in total.reshape(n_pos, n_rx, -1)]
+    return list(synthesise(coef, starts, kind, valid, owner, shapes, n_pos, n))
 
 
 def literal_fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:
@@ -261,10 +233,15 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     size = shapes.shape[1]
     n_pos = len(positions)
     samples = _arrival_samples(scene, positions)  # [m, pos, P]
-    n_paths = samples.shape[2]
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
     _g, _length, weight = stacked_paths(scene.model, z[None, :], rel)  # [P, m, pos]
+    # A path whose burst lies outside the record on every receiver, for every position, has no
+    # column anywhere (its unknowns would be zero): leave it out (most of a model's further turns
+    # round the pipe and end echoes arrive after the record; the Gram matrix grows as their square).
+    inside = ((samples < n) & (samples + size > 0) & scene.rx_mask[:, None, None]).any(axis=(0, 1))
+    samples, weight = samples[:, :, inside], weight[inside]
+    n_paths = samples.shape[2]
     basis_arr = _bearing_basis(scene, positions, orders)  # [m, pos, K]
     n_basis = basis_arr.shape[-1]
     # Columns per receiver: (position, path, shape), shape fastest.
@@ -272,7 +249,8 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
     valid = (starts < n) & (starts + size > 0) & scene.rx_mask[:, None]
     starts = np.where(valid, starts, 0)
-    gram, rhs, padded, window = _normal_equations(residual, starts, kind, valid, shapes, table)
+    gram, rhs = normal_equations(residual, starts, kind, valid, shapes, table)
+    owner = np.repeat(np.arange(n_pos), n_paths * 2)[None, :].repeat(n_rx, axis=0)
     # Map column (pos, path, shape) on receiver m to unknowns (pos, path, basis, shape).
     n_cols = n_pos * n_paths * 2
     w = weight.transpose(1, 2, 0)  # [m, pos, P]
@@ -280,8 +258,7 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
         wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)  # the basis is the constant 1
         big_gram = np.einsum("ma,mab,mb->ab", wc, gram, wc)
         unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ np.einsum("ma,ma->a", wc, rhs)
-        return _synthesise(wc * unknowns[None, :], valid, shapes[kind], window, padded.shape[1], n_pos, n_paths,
-                           n_rx, size, n)
+        return list(synthesise(wc * unknowns[None, :], starts, kind, valid, owner, shapes, n_pos, n))
     # Column (pos, path, shape) on receiver m carries unknowns (pos, path, shape, k) with weights
     # w_mp * basis_k(d_m): the mapping is block-diagonal, one row of K weights per column.
     wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)[:, :, None] * np.repeat(
@@ -290,7 +267,7 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
     unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
     coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(n_cols, n_basis))
-    return _synthesise(coef, valid, shapes[kind], window, padded.shape[1], n_pos, n_paths, n_rx, size, n)
+    return list(synthesise(coef, starts, kind, valid, owner, shapes, n_pos, n))
 
 
 
@@ -332,12 +309,3 @@ def literal_fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: lis
         sel = owner_arr == p
         fitted[p] = (design[:, sel] @ coef[sel]).reshape(n_rx, n)
     return fitted
-
-def _synthesise(coef: np.ndarray, valid: np.ndarray, shapes: np.ndarray, window: np.ndarray, width: int,
-                n_pos: int, n_paths: int, n_rx: int, size: int, n: int) -> list[np.ndarray]:
-    """Each position's fitted echoes on every receiver: the columns' bursts times their coefficients."""
-    owner = np.repeat(np.arange(n_pos), n_paths * 2)[None, :].repeat(n_rx, axis=0)
-    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * width + window
-    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes
-    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * n_rx * width)
-    return [np.ascontiguousarray(e[:, size:size + n]) for e in total.reshape(n_pos, n_rx, -1)]

@@ -10,9 +10,15 @@ from scipy import signal as sp_signal
 from test_imaging_multipath import random_problem
 
 import imaging.multipath as multipath
-from imaging import gather
+from imaging import fitkernels, gather
 from imaging.arrivals import analytic_matched, analytic_signal, hann_burst, matched_filter, reference_amplitude
-from imaging.echofit import fit_echoes, fit_smooth_echoes, literal_fit_echoes, literal_fit_smooth_echoes
+from imaging.echofit import (
+    _partial_products,
+    fit_echoes,
+    fit_smooth_echoes,
+    literal_fit_echoes,
+    literal_fit_smooth_echoes,
+)
 from imaging.grid import Grid
 from imaging.multidefect import find_defects
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
@@ -42,6 +48,30 @@ def test_compiled_gather_equals_the_numpy_gather(data):
     gather.accumulate_compiled(fast, row, groups, idx, w, roll)
     gather.accumulate_numpy(slow, row, groups, idx, w, roll)
     np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-5)
+
+
+@needs_numba
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_compiled_echo_fit_sums_equal_the_numpy_sums(data):
+    # Columns starting before, inside, across the end of and after a short record, some invalid.
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    shapes, table = _partial_products(1e6, 85e3, 5)
+    size = shapes.shape[1]
+    n_rx, n_cols, n_pos = data.draw(st.integers(1, 4)), data.draw(st.integers(1, 12)), data.draw(st.integers(1, 3))
+    n = data.draw(st.integers(1, 3 * size))
+    starts = rng.integers(-size - 2, n + 2, (n_rx, n_cols)).astype(np.int64)
+    kind = rng.integers(0, 2, (n_rx, n_cols)).astype(np.int64)
+    valid = (rng.random((n_rx, n_cols)) > 0.2) & (starts < n) & (starts + size > 0)  # as the fit sets it
+    residual = rng.standard_normal((n_rx, n))
+    fast = fitkernels.normal_equations(residual, starts, kind, valid, shapes, table)
+    slow = fitkernels.normal_equations_numpy(residual, starts, kind, valid, shapes, table)
+    for f, s in zip(fast, slow, strict=True):
+        np.testing.assert_allclose(f, s, rtol=1e-12, atol=1e-12)
+    coef, owner = rng.standard_normal((n_rx, n_cols)), rng.integers(0, n_pos, (n_rx, n_cols)).astype(np.int64)
+    np.testing.assert_allclose(fitkernels.synthesise(coef, starts, kind, valid, owner, shapes, n_pos, n),
+                               fitkernels.synthesise_numpy(coef, starts, kind, valid, owner, shapes, n_pos, n),
+                               rtol=1e-12, atol=1e-12)
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

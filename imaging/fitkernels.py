@@ -1,0 +1,150 @@
+"""Inner loops of the echo fit (imaging/echofit.py), compiled with numba when it is installed.
+
+A fit's columns are shifted, possibly record-cut copies of two shapes (the burst and its quadrature
+twin): column ``a`` on receiver ``m`` is ``shapes[kind[m, a]]`` starting at sample ``starts[m, a]``,
+used where ``valid[m, a]`` (a valid column overlaps the record: -size < start < n). Two sums are needed:
+
+1. the normal equations: per receiver, the Gram matrix of the columns (each entry a difference
+   of two entries of the shapes' partial-product table, however the record cuts the pair) and
+   the right-hand side (each column's samples times the residual's);
+2. the synthesis: each column's shape times its coefficient, added at its samples into its
+   owner's (the position's) echoes.
+
+Each has two implementations of the same sum: a compiled numba kernel (one pass over the
+columns' own samples, no temporaries) and a vectorised numpy form (gathers and a bincount over
+[receivers x columns x burst length] arrays), used when numba is missing or switched off
+(``PIPESENTRY_NUMBA=0``, imaging/jit.py). Tests hold them equal.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from imaging.jit import njit, numba_module
+
+
+def normal_equations_numpy(residual: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray,
+                           shapes: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(gram [m, a, a], rhs [m, a]) of the columns; ``table`` as imaging/echofit.py ``_partial_products``."""
+    n_rx, n = residual.shape
+    size = shapes.shape[1]
+    starts = np.where(valid, starts, 0)
+    ka, kb = starts[:, :, None], starts[:, None, :]
+    lo = np.maximum(np.maximum(ka, kb), 0)
+    hi = np.minimum(np.minimum(ka, kb) + size, n)
+    lag = np.clip(kb - ka, 1 - size, size - 1) + size - 1
+    xa, xb = kind[:, :, None], kind[:, None, :]
+    u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
+    gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
+                    table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
+    padded, window = _padded_windows(residual, starts, size)
+    segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
+    rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
+    return gram, rhs
+
+
+def synthesise_numpy(coef: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray, owner: np.ndarray,
+                     shapes: np.ndarray, n_pos: int, n: int) -> np.ndarray:
+    """[n_pos, m, n]: each owner's echoes, the columns' shapes times ``coef`` [m, a] added at their samples."""
+    n_rx = coef.shape[0]
+    size = shapes.shape[1]
+    starts = np.where(valid, starts, 0)
+    width = n + 2 * size
+    _padded, window = _padded_windows(np.zeros((n_rx, n)), starts, size)
+    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * width + window
+    weights = np.where(valid, coef, 0.0)[:, :, None] * shapes[kind]
+    total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * n_rx * width)
+    return total.reshape(n_pos, n_rx, width)[:, :, size:size + n]
+
+
+def _padded_windows(residual: np.ndarray, starts: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the residual zero-padded by ``size`` either side, each column's sample indices into it [m, a, size])."""
+    n_rx, n = residual.shape
+    padded = np.zeros((n_rx, n + 2 * size))
+    padded[:, size:size + n] = residual
+    return padded, (size + starts)[:, :, None] + np.arange(size)
+
+
+def _normal_loops(residual, starts, kind, valid, shapes, table, gram, rhs):  # pragma: no cover - compiled by numba
+    n_rx, n = residual.shape
+    n_cols = starts.shape[1]
+    size = shapes.shape[1]
+    for m in range(n_rx):
+        for a in range(n_cols):
+            if not valid[m, a]:
+                continue
+            ka = starts[m, a]
+            xa = kind[m, a]
+            total = 0.0
+            for t in range(max(ka, 0), min(ka + size, n)):
+                total += residual[m, t] * shapes[xa, t - ka]
+            rhs[m, a] = total
+            for b in range(n_cols):
+                if not valid[m, b]:
+                    continue
+                kb = starts[m, b]
+                lo = max(ka, kb, 0)
+                hi = min(min(ka, kb) + size, n)
+                if hi <= lo:
+                    continue
+                lag = min(max(kb - ka, 1 - size), size - 1) + size - 1
+                u1 = min(max(hi - ka, 0), size)
+                u0 = min(max(lo - ka, 0), size)
+                gram[m, a, b] = table[xa, kind[m, b], lag, u1] - table[xa, kind[m, b], lag, u0]
+
+
+def _synthesis_loops(coef, starts, kind, valid, owner, shapes, out):  # pragma: no cover - compiled by numba
+    n_rx, n_cols = coef.shape
+    n = out.shape[2]
+    size = shapes.shape[1]
+    for m in range(n_rx):
+        for a in range(n_cols):
+            if not valid[m, a]:
+                continue
+            ka = starts[m, a]
+            c = coef[m, a]
+            xa = kind[m, a]
+            p = owner[m, a]
+            for t in range(max(ka, 0), min(ka + size, n)):
+                out[p, m, t] += c * shapes[xa, t - ka]
+
+
+def _compile():
+    numba = numba_module()
+    if numba is None:
+        return None, None
+    return njit(numba, None, _normal_loops), njit(numba, None, _synthesis_loops)
+
+
+normal_compiled, synthesis_compiled = _compile()
+
+
+def normal_equations(residual: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray,
+                     shapes: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``normal_equations_numpy``'s sums, by the compiled kernel when available."""
+    if normal_compiled is None:
+        return normal_equations_numpy(residual, starts, kind, valid, shapes, table)
+    n_rx, n_cols = starts.shape
+    gram, rhs = np.zeros((n_rx, n_cols, n_cols)), np.zeros((n_rx, n_cols))
+    normal_compiled(*_contiguous(residual, starts, kind, valid), np.ascontiguousarray(shapes, dtype=np.float64),
+                    table, gram, rhs)
+    return gram, rhs
+
+
+def synthesise(coef: np.ndarray, starts: np.ndarray, kind: np.ndarray, valid: np.ndarray, owner: np.ndarray,
+               shapes: np.ndarray, n_pos: int, n: int) -> np.ndarray:
+    """``synthesise_numpy``'s sums, by the compiled kernel when available."""
+    if synthesis_compiled is None:
+        return synthesise_numpy(coef, starts, kind, valid, owner, shapes, n_pos, n)
+    out = np.zeros((n_pos, coef.shape[0], n))
+    synthesis_compiled(*_contiguous(coef, starts, kind, valid), np.ascontiguousarray(owner, dtype=np.int64),
+                       np.ascontiguousarray(shapes, dtype=np.float64), out)
+    return out
+
+
+def _contiguous(values: np.ndarray, starts: np.ndarray, kind: np.ndarray,
+                valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return (np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(starts, dtype=np.int64),
+            np.ascontiguousarray(kind, dtype=np.int64), np.ascontiguousarray(valid, dtype=np.bool_))
+
+
+__all__ = ["normal_equations", "normal_equations_numpy", "synthesise", "synthesise_numpy"]
