@@ -25,8 +25,10 @@ either end of the imaged span (within EDGE_MM of the Tx or Rx ring), or in a rin
 (within NEAR_RING_WAVELENGTHS), is not a located scatterer — on the span's end the map would still
 rise beyond it, in the near field its far-field paths do not hold; it is what changes at a ring (its
 transducers, what leaks or converts there, the direct wave's shadow of a found defect) — so it is
-not reported, but its echoes are fitted and removed with the defects' (they would bias them); nor
-does such a maximum count as the rival that makes a later peak unresolved. A last pass re-locates
+not reported, but its echoes are fitted and removed with the defects' (they would bias them). The
+strongest maximum of all is treated alike when it lies on the span's end: fitted, and the next peak
+is sought as the first defect; it is reported only when nothing located crosses the threshold after
+it (a change at a ring is still a change). A last pass re-locates
 each defect (within REFINE_RADIUS_MM) with the others' echoes, those maxima's included, removed; a
 later defect it moves into a ring's near field is dropped.
 
@@ -141,10 +143,6 @@ def fine_peak(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, i: int, 
     return refine_peak(local, int(a), int(b))
 
 
-LocalImage = Callable[[Grid], np.ndarray]  # a feature's map on a small grid
-Allowed = Callable[[Grid], np.ndarray]  # the pixels of a grid a peak may lie on
-
-
 def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple[int, int]]:
     """The ``count`` highest finite pixels that are >= their 8 neighbours (angle wraps when ``wraps``)."""
     padded = np.pad(candidates, ((1, 1), (0, 0)), constant_values=-np.inf)
@@ -162,18 +160,20 @@ def _local_maxima(candidates: np.ndarray, wraps: bool, count: int) -> list[tuple
 
 
 def _runner_up(image_local: Callable[[Grid], np.ndarray], di_map: DIMap, estimate: Estimate,
-               circumference_mm: float, among: Allowed | None = None) -> float:
+               circumference_mm: float) -> float:
     """The highest peak more than CONFIDENCE_EXCLUSION_MM from the estimate, refined like the estimate
-    (the best of the RUNNER_UP_CANDIDATES highest local maxima of the coarse map there), ``among``
-    the pixels it allows (default: all)."""
+    (the best of the RUNNER_UP_CANDIDATES highest local maxima of the coarse map there)."""
     def outside(g: Grid) -> np.ndarray:
-        away = ~exclusion_mask(g, estimate.axial_mm, estimate.angle_deg, CONFIDENCE_EXCLUSION_MM, circumference_mm)
-        return away if among is None else away & among(g)
+        return ~exclusion_mask(g, estimate.axial_mm, estimate.angle_deg, CONFIDENCE_EXCLUSION_MM, circumference_mm)
 
     candidates = np.where(outside(di_map.grid), di_map.pixels, -np.inf)
     maxima = _local_maxima(candidates, di_map.grid.wraps_in_angle, RUNNER_UP_CANDIDATES)
     return max((fine_peak(image_local, di_map, i, j, outside, RUNNER_UP_HALF_WIDTH).di for i, j in maxima),
                default=0.0)
+
+
+LocalImage = Callable[[Grid], np.ndarray]  # a feature's map on a small grid
+Allowed = Callable[[Grid], np.ndarray]  # the pixels of a grid a peak may lie on
 
 
 @dataclass(frozen=True)
@@ -256,9 +256,7 @@ def find_defects(
             return mask
         return allowed
 
-    def off_the_rings(g: Grid) -> np.ndarray:
-        return np.broadcast_to(~_near_the_rings(scene, g.axial_mm)[:, None], g.shape)
-
+    ring_first: tuple[np.ndarray, DIMap, Estimate] | None = None  # the strongest maximum fitted at a ring
     rejected: list[Found] = []
     fitted: list[Found] = []  # found defects and maxima on a ring, in the order of their echoes in ``fits``
     reported: list[bool] = []  # per ``fitted``: a found defect (True) or a maximum on a ring, never reported
@@ -280,21 +278,21 @@ def find_defects(
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
-        if found and _near_a_ring(scene, estimate):
+        if _on_the_span_edge(grid, estimate) if not found else _near_a_ring(scene, estimate):
             # A maximum on the Tx or Rx ring is not located (the map would still rise beyond the
             # imaged span): a change at a ring (its transducers, what leaks or converts there, the
             # direct wave's shadow), not a defect between them. Its echoes are fitted with the
-            # defects' so that they stop biasing them, but it is not reported.
+            # defects' so that they stop biasing them, but it is not reported; the strongest
+            # maximum is, when nothing located crosses the threshold after it (a change at a ring
+            # is still a change). Later ones within a ring's near field are treated alike.
+            ring_first = ring_first or (values, di_map, estimate)
             fitted.append(Found(estimate, di_map, severity_at(values, search.scene, estimate)))
             reported.append(False)
             fits = search.fits(fitted)
             residual = search.original - sum(fits)
             continue
         item = search.found(values, di_map, estimate)
-        # Its rival is sought off the rings: a maximum there is what changes at a ring (above), never
-        # a defect, and not the flat field of fit leftovers this test is for.
-        if found and _runner_up(search.local_image(values), di_map, estimate, circumference_mm,
-                                off_the_rings) >= UNRESOLVED_PEAK_RATIO * estimate.di:
+        if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
         with_item = search.fits(fitted + [item])
         if found and not search.beats_patterns(fitted, with_item):
@@ -307,6 +305,8 @@ def find_defects(
         residual = search.original - sum(fits)
     if first is None or first_peak is None:
         raise MultiDefectError("the map grid has no pixel to search")
+    if not found and ring_first is not None:  # nothing located: the change at the ring is what there is
+        return first, [search.found(*ring_first)], first_peak
     if len(fitted) > 1 and found:
         found = _refine(search, fitted, fits, reported)
     return first, found, first_peak
@@ -337,15 +337,9 @@ def _near_a_ring(scene: Scene, estimate: Estimate) -> bool:
     a maximum there is what changes on a few receivers' direct arrival (a found defect's forward
     shadow, a transducer's gain), measured on full-wave records 8-14 mm before the Rx ring in line
     with a receiver, not a scatterer located between the rings."""
-    return bool(_near_the_rings(scene, np.array([estimate.axial_mm]))[0])
-
-
-def _near_the_rings(scene: Scene, axial_mm: np.ndarray) -> np.ndarray:
-    """Per axial position: on an end of the imaged span (EDGE_MM) or within NEAR_RING_WAVELENGTHS of a ring."""
     near_mm = NEAR_RING_WAVELENGTHS * scene.velocity_m_s * MM_PER_M / scene.excitation_hz
-    span = scene.grid.axial_mm
-    edge = (axial_mm <= span[0] + EDGE_MM) | (axial_mm >= span[-1] - EDGE_MM)
-    return edge | (np.abs(axial_mm) < near_mm) | (np.abs(axial_mm - scene.model.tx_rx_distance_mm) < near_mm)
+    ring_mm = (0.0, float(scene.model.tx_rx_distance_mm))
+    return _on_the_span_edge(scene.grid, estimate) or min(abs(estimate.axial_mm - z) for z in ring_mm) < near_mm
 
 
 def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
