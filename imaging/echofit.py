@@ -239,15 +239,16 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     # A path whose burst lies outside the record on every receiver, for every position, has no
     # column anywhere (its unknowns would be zero): leave it out (most of a model's further turns
     # round the pipe and end echoes arrive after the record; the Gram matrix grows as their square).
-    inside = ((samples < n) & (samples + size > 0) & scene.rx_mask[:, None, None]).any(axis=(0, 1))
-    samples, weight = samples[:, :, inside], weight[inside]
+    in_record = (samples < n) & (samples + size > 0) & scene.rx_mask[:, None, None]  # [m, pos, P]
+    inside = in_record.any(axis=(0, 1))
+    samples, in_record, weight = samples[:, :, inside], in_record[:, :, inside], weight[inside]
     n_paths = samples.shape[2]
     basis_arr = _bearing_basis(scene, positions, orders)  # [m, pos, K]
     n_basis = basis_arr.shape[-1]
     # Columns per receiver: (position, path, shape), shape fastest.
     starts = np.repeat(samples.reshape(n_rx, -1), 2, axis=1)
     kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
-    valid = (starts < n) & (starts + size > 0) & scene.rx_mask[:, None]
+    valid = np.repeat(in_record.reshape(n_rx, -1), 2, axis=1)
     starts = np.where(valid, starts, 0)
     gram, rhs = normal_equations(residual, starts, kind, valid, shapes, table)
     owner = np.repeat(np.arange(n_pos), n_paths * 2)[None, :].repeat(n_rx, axis=0)

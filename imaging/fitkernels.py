@@ -36,7 +36,9 @@ def normal_equations_numpy(residual: np.ndarray, starts: np.ndarray, kind: np.nd
     u1, u0 = np.clip(hi - ka, 0, size), np.clip(lo - ka, 0, size)
     gram = np.where((hi > lo) & valid[:, :, None] & valid[:, None, :],
                     table[xa, xb, lag, u1] - table[xa, xb, lag, u0], 0.0)
-    padded, window = _padded_windows(residual, starts, size)
+    padded = np.zeros((n_rx, n + 2 * size))
+    padded[:, size:size + n] = residual
+    window = _windows(starts, size)
     segments = np.take_along_axis(padded, window.reshape(n_rx, -1), axis=1).reshape(window.shape)
     rhs = np.where(valid, np.einsum("mau,mau->ma", segments, shapes[kind]), 0.0)
     return gram, rhs
@@ -49,19 +51,15 @@ def synthesise_numpy(coef: np.ndarray, starts: np.ndarray, kind: np.ndarray, val
     size = shapes.shape[1]
     starts = np.where(valid, starts, 0)
     width = n + 2 * size
-    _padded, window = _padded_windows(np.zeros((n_rx, n)), starts, size)
-    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * width + window
+    flat = (owner[:, :, None] * n_rx + np.arange(n_rx)[:, None, None]) * width + _windows(starts, size)
     weights = np.where(valid, coef, 0.0)[:, :, None] * shapes[kind]
     total = np.bincount(flat.ravel(), weights=weights.ravel(), minlength=n_pos * n_rx * width)
     return total.reshape(n_pos, n_rx, width)[:, :, size:size + n]
 
 
-def _padded_windows(residual: np.ndarray, starts: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(the residual zero-padded by ``size`` either side, each column's sample indices into it [m, a, size])."""
-    n_rx, n = residual.shape
-    padded = np.zeros((n_rx, n + 2 * size))
-    padded[:, size:size + n] = residual
-    return padded, (size + starts)[:, :, None] + np.arange(size)
+def _windows(starts: np.ndarray, size: int) -> np.ndarray:
+    """Each column's sample indices [m, a, size] into a record zero-padded by ``size`` either side."""
+    return (size + starts)[:, :, None] + np.arange(size)
 
 
 def _normal_loops(residual, starts, kind, valid, shapes, table, gram, rhs):  # pragma: no cover - compiled by numba
