@@ -20,12 +20,19 @@ path's amplitude a first-order circular harmonic of the receiver's bearing, PATT
 is only the alternative hypothesis, never what is subtracted: removing the found defects' echoes
 with it (tried, 2026-12-02) cut spurious defects further but also fitted away part of a weak
 second notch's echoes wherever its paths overlapped the first's (DI ~0.05 -> ~0.03), so some
-were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A later maximum on
+were lost (mock physics, bench/bench_defect_gate.py: 29 -> 27 of 32 notches). A faint later peak
+(below FAINT_RELATIVE_DI of the first, down to MIN_RELATIVE_DI) must beat a richer alternative,
+the second-order pattern (FAINT_PATTERN_ORDERS): the fainter a peak, the more of it the found
+defects' leftovers can make (full-wave dev set: a notch beside a near-rigid mass at 0.19 of the
+mass's DI is found; mock mode conversion leaves faint peaks on the notch's own line that the
+first-order pattern let through, the second-order one does not). A second-order pattern for every
+later peak was tried and lost a 1 mm-deep second notch at half the first's DI (mock). A later maximum on
 either end of the imaged span (within EDGE_MM of the Tx or Rx ring), or in a ring's near field
 (within NEAR_RING_WAVELENGTHS), is not a located scatterer — on the span's end the map would still
 rise beyond it, in the near field its far-field paths do not hold; it is what changes at a ring (its
 transducers, what leaks or converts there, the direct wave's shadow of a found defect) — so it is
-not reported, but its echoes are fitted and removed with the defects' (they would bias them). The
+not reported, but its echoes are fitted and removed with the defects' (they would bias them; a faint
+one is only ruled out: fitting it moved the first defect on full-wave records, 26 -> 33 mm). The
 strongest maximum of all is treated alike when it lies on the span's end: fitted, and the next peak
 is sought as the first defect; it is reported only when nothing located crosses the threshold after
 it (a change at a ring is still a change). A last pass re-locates
@@ -57,7 +64,9 @@ from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
-MIN_RELATIVE_DI = 0.3  # ... and score at least this fraction of the first one's DI
+MIN_RELATIVE_DI = 0.15  # ... and score at least this fraction of the first one's DI
+FAINT_RELATIVE_DI = 0.3  # a later peak below this fraction of the first's is faint: at a ring it is not fitted,
+#                         located it must beat the richer pattern (FAINT_PATTERN_ORDERS)
 UNRESOLVED_PEAK_RATIO = 0.95  # ... and stand out: no rival peak (beyond 50 mm) at this fraction of its DI
 REFINE_RADIUS_MM = 20.0  # the refinement pass may move an estimate this far at most
 FINE_STEP_MM = 1.0  # peaks found on the (coarse) map grid are refined on a local grid this fine
@@ -75,6 +84,7 @@ NEAR_RING_WAVELENGTHS = 0.5  # ... and one this close to a ring (in wavelengths)
 FIT_WRAPS = 6  # the found defects' echoes are fitted along this many legs round the pipe (the map: 2)
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
+FAINT_PATTERN_ORDERS = 2  # ... up to this order for a faint one (below FAINT_RELATIVE_DI of the first)
 PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
 #                    (1.2 removes most spurious defects but loses weak second notches: docs/imaging.md)
 
@@ -205,14 +215,15 @@ class _Search:
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
 
-    def beats_patterns(self, found: list[Found], with_item: list[np.ndarray]) -> bool:
+    def beats_patterns(self, found: list[Found], with_item: list[np.ndarray], orders: int = PATTERN_ORDERS) -> bool:
         """Does adding a scatterer at a candidate (the map's model; ``with_item``: the fits of
         ``found`` and the candidate) explain more of the record than letting the ``found``
         defects' echoes follow a directional pattern instead (each path's amplitude a circular
-        harmonic of the receiver's bearing up to PATTERN_ORDERS)? The candidate has the fewer
-        unknowns (2 per path, against 4 per path and found defect), so a tie goes to the pattern."""
+        harmonic of the receiver's bearing up to ``orders``)? The candidate has the fewer unknowns
+        (2 per path, against 4 per path and found defect at order 1, 8 at order 2), so a tie goes
+        to the pattern."""
         explained = float(np.sum((self.original - sum(with_item))**2))
-        patterned = float(np.sum((self.original - sum(self.fits(found, orders=PATTERN_ORDERS)))**2))
+        patterned = float(np.sum((self.original - sum(self.fits(found, orders=orders)))**2))
         return explained * PATTERN_MARGIN < patterned
 
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
@@ -278,7 +289,12 @@ def find_defects(
         # absolute threshold; later defects must also be a fair fraction of the first.
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
-        if _on_the_span_edge(grid, estimate) if not found else _near_a_ring(scene, estimate):
+        at_a_ring = _on_the_span_edge(grid, estimate) if not found else _near_a_ring(scene, estimate)
+        faint = bool(found) and estimate.di < FAINT_RELATIVE_DI * found[0].estimate.di
+        if at_a_ring and faint:
+            rejected.append(Found(estimate, di_map, 0.0))  # too weak to bias the defects: not worth its unknowns
+            continue
+        if at_a_ring:
             # A maximum on the Tx or Rx ring is not located (the map would still rise beyond the
             # imaged span): a change at a ring (its transducers, what leaks or converts there, the
             # direct wave's shadow), not a defect between them. Its echoes are fitted with the
@@ -295,7 +311,7 @@ def find_defects(
         if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
             break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
         with_item = search.fits(fitted + [item])
-        if found and not search.beats_patterns(fitted, with_item):
+        if found and not search.beats_patterns(fitted, with_item, FAINT_PATTERN_ORDERS if faint else PATTERN_ORDERS):
             rejected.append(item)  # what the found defects' directional fields leave: look further
             continue
         found.append(item)

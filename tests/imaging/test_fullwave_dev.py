@@ -63,6 +63,20 @@ def test_two_notches_are_reported_as_two_defects_not_three():
     assert max(_errors(result.defects, [(120.0, 300.0), (280.0, 100.0)])) < 30.0
 
 
+@pytest.mark.parametrize("case", ["n16_absorbing_two_notch_mass", "n16_absorbing_two_notch_mass_noisy"])
+def test_a_notch_beside_a_near_rigid_mass_is_found_as_the_second_defect(case):
+    # The notch's DI is 0.19 of the mass's (0.13 against 0.69, the defect-free peak 0.005): below the
+    # former 0.3 relative gate it was never reported. Faint later peaks now go down to 0.15 of the
+    # first and must beat the found defects' second-order directional pattern instead.
+    base, cur = _pair(case)
+    result = analyze(base, cur)
+    assert len(result.defects) == 2
+    mass, notch = result.defects
+    assert _errors([mass], [(300.0, 20.0)])[0] < 10.0
+    assert _errors([notch], [(100.0, 180.0)])[0] < 30.0
+    assert notch.di < 0.3 * mass.di  # strongest first; the notch is the faint one
+
+
 @pytest.mark.parametrize("case", ["m8_absorbing_mass_150_45", "m8_absorbing_mass_150_45_noisy"])
 def test_a_mass_without_end_echoes_is_reported_once(case):
     # A near-rigid mass on an 8-transducer ring: the leftover of its fit imaged as a second
