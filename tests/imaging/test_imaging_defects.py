@@ -222,7 +222,7 @@ def test_a_directional_echo_is_removed_by_a_first_order_pattern_and_not_by_one_a
 def test_a_faint_later_peak_must_beat_a_second_order_pattern_of_the_found_defects_echoes(monkeypatch):
     # A notch that also converts T(0,1) into flexural and longitudinal modes (bench_accuracy's assumed
     # levels, without ring leakage): the converted waves, imaged as T(0,1), leave a faint peak on the
-    # notch's own line (57-70 mm, 0.16 of the notch's DI before re-location). Against the first-order
+    # notch's own line (here 77 mm 89 deg, 0.34 of the notch's DI after re-location). Against the first-order
     # pattern it passed as a second defect once later peaks went down to 0.15 of the first; a peak
     # below 0.3 of the first must now explain more than a second-order pattern does, and it does not.
     conversions = [ModeConversion(mode="F(1,1)", ratio=0.5), ModeConversion(mode="F(2,1)", ratio=0.3, phase_deg=60.0),
