@@ -274,7 +274,7 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
     peak = found[0].estimate if found else first_peak
     defects = []
     for f in found:
-        conf = peak_confidence(f.di_map, f.estimate, circumference_mm=scene.circumference_mm,
+        conf = peak_confidence(f.di_map, f.peak, circumference_mm=scene.circumference_mm,
                                runner_up_di=f.runner_up_di)
         region = localization_region(conf, circumference_mm=current.circumference_mm,
                                      axial_span_mm=current.tx_rx_distance_mm)
