@@ -20,7 +20,7 @@ class Estimate:
         return {"axial_mm": self.axial_mm, "angle_deg": self.angle_deg, "di": self.di}
 
 
-def _parabolic_offset(left: float, centre: float, right: float) -> float:
+def parabolic_offset(left: float, centre: float, right: float) -> float:
     """Vertex of the parabola through three equally spaced samples, in steps from the centre, in [-0.5, 0.5]."""
     curvature = left - 2.0 * centre + right
     if curvature >= 0.0:  # not a strict maximum (flat or a valley): keep the pixel centre
@@ -34,13 +34,13 @@ def refine_peak(di_map: DIMap, i: int, j: int) -> Estimate:
     n_axial, n_angle = px.shape
     axial = grid.axial_start_mm + grid.axial_step_mm * i
     if 0 < i < n_axial - 1:
-        axial += grid.axial_step_mm * _parabolic_offset(px[i - 1, j], px[i, j], px[i + 1, j])
+        axial += grid.axial_step_mm * parabolic_offset(px[i - 1, j], px[i, j], px[i + 1, j])
     angle = grid.angle_start_deg + grid.angle_step_deg * j
     if grid.wraps_in_angle and n_angle >= 3:
         left, right = px[i, (j - 1) % n_angle], px[i, (j + 1) % n_angle]
-        angle += grid.angle_step_deg * _parabolic_offset(left, px[i, j], right)
+        angle += grid.angle_step_deg * parabolic_offset(left, px[i, j], right)
     elif 0 < j < n_angle - 1:
-        angle += grid.angle_step_deg * _parabolic_offset(px[i, j - 1], px[i, j], px[i, j + 1])
+        angle += grid.angle_step_deg * parabolic_offset(px[i, j - 1], px[i, j], px[i, j + 1])
     return Estimate(float(axial), float(np.mod(angle, 360.0)), float(px[i, j]))
 
 

@@ -61,7 +61,7 @@ from imaging.dimap import DIMap
 from imaging.echofit import burst_pair, fit_echoes, fit_smooth_echoes  # noqa: F401  (burst_pair: re-exported)
 from imaging.features import residual_feature
 from imaging.grid import Grid
-from imaging.localize import Estimate, exclusion_mask, peak_confidence, refine_peak
+from imaging.localize import Estimate, exclusion_mask, parabolic_offset, peak_confidence, refine_peak
 from imaging.multipath import local_multipath_pixels, multipath_pixels
 from imaging.region import localization_region
 from imaging.scene import Scene
@@ -426,10 +426,8 @@ def _echo_fit_axial(search: _Search, item: Found, others: list[Found]) -> Found:
     z_best = min((z0, z1, z2), key=unexplained)
     if z_best != z1:  # the half step moved the best: centre the parabola on it
         z0, z1, z2 = z_best - half, z_best, z_best + half
-    v0, v1, v2 = unexplained(z0), unexplained(z1), unexplained(z2)
-    curvature = v0 - 2 * v1 + v2
-    offset = 0.5 * (v0 - v2) / curvature if curvature > 0 else 0.0
-    axial = float(np.clip(z1 + half * float(np.clip(offset, -1.0, 1.0)), lo, hi))
+    offset = parabolic_offset(-unexplained(z0), -unexplained(z1), -unexplained(z2))  # the minimum's vertex
+    axial = float(np.clip(z1 + half * offset, lo, hi))
     return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate)
 
 
