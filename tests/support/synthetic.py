@@ -12,11 +12,12 @@ CIRCUMFERENCE_MM = math.pi * OD_MM
 C_M_S = 3130.0
 
 
-def hanning_pulse(t_s: np.ndarray, frequency_hz: float = 85e3, cycles: int = 5) -> np.ndarray:
-    """The paper's excitation: a Hanning-windowed sine burst, zero outside 0 <= t <= cycles/f."""
+def hanning_pulse(t_s: np.ndarray, frequency_hz: float = 85e3, cycles: int = 5, lag_rad: float = 0.0) -> np.ndarray:
+    """The paper's excitation: a Hanning-windowed sine burst, zero outside 0 <= t <= cycles/f; ``lag_rad``
+    delays the carrier only (a scatterer's phase), not the envelope."""
     inside = (t_s >= 0) & (t_s <= cycles / frequency_hz)
     phase = 2 * np.pi * frequency_hz * t_s
-    return np.where(inside, 0.5 * (1 - np.cos(phase / cycles)) * np.sin(phase), 0.0)
+    return np.where(inside, 0.5 * (1 - np.cos(phase / cycles)) * np.sin(phase - lag_rad), 0.0)
 
 
 def measurement(traces: np.ndarray, rx_angles_deg: np.ndarray, **overrides) -> Measurement:
@@ -79,11 +80,15 @@ def baseline_and_scatterers(
     noise_rms: float = 0.0,
     seed: int = 0,
     both_ways: bool = True,
+    forward_lag_rad: float = 0.0,
 ) -> tuple[Measurement, Measurement]:
     """Like ``baseline_and_scatterer`` for several point scatterers (axial_mm, angle_deg, amplitude).
 
     With ``both_ways`` each echo also arrives the long way round the pipe, as a real scattered
-    wave does. Amplitude falls as 1/sqrt(distance) (2-D spreading), as above.
+    wave does. Amplitude falls as 1/sqrt(distance) (2-D spreading), as above. ``forward_lag_rad``
+    (b) gives each echo a carrier phase lag b (1 - cos psi), psi its scattering angle (between the
+    incident wave, +z, and the way to the receiver): a finite scatterer's phase pattern, such as a
+    notch's (docs/accuracy.md), which on these direct paths equals a move of b / k along the axis.
     """
     rng = np.random.default_rng(seed)
     fs = 10e6
@@ -98,8 +103,10 @@ def baseline_and_scatterers(
         legs = [short, CIRCUMFERENCE_MM - short] if both_ways else [short]
         for arc in legs:
             r = np.hypot(400.0 - axial_mm, arc)
+            lag = forward_lag_rad * (1.0 - (400.0 - axial_mm) / np.maximum(r, 1e-9))
             for m in range(n_rx):
-                cur[m] += amplitude / np.sqrt(max(r[m], 10.0) / 37.0) * hanning_pulse(t - (axial_mm + r[m]) / c_mm_s)
+                cur[m] += amplitude / np.sqrt(max(r[m], 10.0) / 37.0) * hanning_pulse(
+                    t - (axial_mm + r[m]) / c_mm_s, lag_rad=float(lag[m]))
     if noise_rms:
         base = base + rng.normal(0, noise_rms, base.shape)
         cur = cur + rng.normal(0, noise_rms, cur.shape)
