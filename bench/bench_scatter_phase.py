@@ -1,0 +1,136 @@
+"""A defect's scattered phase across the ring, on the project's own full-wave engine, and the axial error it makes.
+
+Without end echoes the map places a defect by how its echo's arrival changes across the ring:
+moving a scatterer by dz along the axis lengthens its path to every receiver by dz (1 - cos psi),
+psi the scattering angle (between the incident wave, +z, and the way to the receiver). A defect
+whose echo phase lags by b (1 - cos psi) is therefore imaged b / k further from the Tx ring
+(docs/accuracy.md). This benchmark measures b for a notch and for masses on the own SH engine
+(16 transducers, 85 kHz, absorbing ends, the wave's circumference set to the record's pi x OD so
+that the map's path lengths are exact) and prints it beside the error of ``pipesentry analyze``.
+
+Per receiver, the residual (current - baseline) is fitted by least squares with the echo along
+each of three legs round the pipe (the shorter way, the other way, once more round), each a
+free complex amplitude times the receiver's own direct arrival (the baseline, moved to the leg's
+arrival time: the pulse as the transducers shape it); the leg-0 amplitude's phase, relative to
+the receiver in line with the defect, is fitted on 1 - cos psi over the receivers within
+MAX_BEARING_DEG of it (farther round the two ways' arrivals coincide). Each simulation takes
+~15-30 s on one core (cached in the full-wave cache: a second run takes seconds).
+
+    .venv/bin/python bench/bench_scatter_phase.py [--cell-mm 0.5]
+"""
+from __future__ import annotations
+
+import os
+
+for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(var, "1")
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from fullwave.cache import cached_simulation  # noqa: E402
+from fullwave.defects import Defect, Mass, Notch  # noqa: E402
+from fullwave.record import PipeModel, SimulationSpec  # noqa: E402
+from fullwave.transducers import RingLayout  # noqa: E402
+from imaging.analysis import analyze  # noqa: E402
+from imaging.measurement import Measurement  # noqa: E402
+
+MAX_BEARING_DEG = 115.0  # receivers this far round from the defect, either way, are fitted
+LEGS = 3  # the echo's legs round the pipe fitted on each receiver
+DEFECTS: list[tuple[str, Defect]] = [
+    ("notch 20x10x2 mm", Notch(axial_mm=250.0, angle_deg=200.0)),
+    ("notch 20x10x2 mm", Notch(axial_mm=150.0, angle_deg=30.0)),
+    ("mass 0.05 kg, 6 mm", Mass(axial_mm=250.0, angle_deg=200.0, diameter_mm=6.0, mass_kg=0.05)),
+    ("mass 1 kg, 20 mm", Mass(axial_mm=250.0, angle_deg=200.0, diameter_mm=20.0, mass_kg=1.0)),
+]
+
+
+def base_spec(cell_mm: float) -> SimulationSpec:
+    circumference = math.pi * PipeModel().outer_diameter_mm  # what the record reports: paths exact
+    return SimulationSpec(pipe=PipeModel(ends="absorbing", circumference_mm=circumference),
+                          rings=RingLayout(n_transducers=16), excitation_hz=85e3, cell_mm=cell_mm)
+
+
+def _shifted(pulse: np.ndarray, delay_samples: float) -> np.ndarray:
+    """``pulse`` delayed by a fraction of samples (Fourier shift; the record is long and quiet at its end)."""
+    n = pulse.size
+    spectrum = np.fft.rfft(pulse, 2 * n)
+    f = np.fft.rfftfreq(2 * n)
+    return np.fft.irfft(spectrum * np.exp(-2j * np.pi * f * delay_samples), 2 * n)[:n]
+
+
+def _quadrature(pulse: np.ndarray) -> np.ndarray:
+    """The pulse with its carrier a quarter period later (its Hilbert transform)."""
+    n = pulse.size
+    spectrum = np.fft.rfft(pulse, 2 * n)
+    return np.fft.irfft(spectrum * -1j, 2 * n)[:n]
+
+
+def leg0_phases(baseline: Measurement, current: Measurement, axial_mm: float, angle_deg: float,
+                velocity_m_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(1 - cos psi, leg-0 phase lag in rad relative to the receiver nearest in line, |amplitude|),
+    for the receivers within MAX_BEARING_DEG of the defect."""
+    c_mm_s = velocity_m_s * 1e3
+    circ = baseline.circumference_mm
+    dz = baseline.tx_rx_distance_mm - axial_mm
+    direct_s = baseline.tx_rx_distance_mm / c_mm_s
+    residual = current.traces.astype(np.float64) - baseline.traces.astype(np.float64)
+    rows = []
+    for m, rx_deg in enumerate(baseline.rx_angles_deg):
+        bearing = (angle_deg - float(rx_deg) + 180.0) % 360.0 - 180.0
+        if abs(bearing) > MAX_BEARING_DEG:
+            continue
+        arc = bearing * circ / 360.0
+        way = 1.0 if arc >= 0 else -1.0
+        legs = [arc, arc - way * circ, arc + way * circ][:LEGS]
+        pulse = baseline.traces[m].astype(np.float64)
+        columns = []
+        for leg in legs:
+            delay = ((axial_mm + math.hypot(dz, leg)) / c_mm_s - direct_s) * baseline.fs_hz
+            moved = _shifted(pulse, delay)
+            columns += [moved, _quadrature(moved)]
+        coef, *_ = np.linalg.lstsq(np.stack(columns, axis=1), residual[m], rcond=None)
+        amplitude = complex(coef[0], coef[1])  # in-phase + quadrature: the carrier lags by arg
+        rows.append((1.0 - dz / math.hypot(dz, arc), abs(bearing), amplitude))
+    one_minus_cos = np.array([r[0] for r in rows])
+    amplitudes = np.array([r[2] for r in rows])
+    reference = amplitudes[int(np.argmin([r[1] for r in rows]))]
+    lag = np.angle(amplitudes * np.conj(reference))  # wrapped to +-pi round the in-line receiver's
+    return one_minus_cos, lag, np.abs(amplitudes)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cell-mm", type=float, default=0.5, help="FDTD cell (the own cases': 0.5 mm)")
+    args = parser.parse_args(argv)
+    spec = base_spec(args.cell_mm)
+    velocity = spec.pipe.steel.shear_velocity_m_s
+    wavenumber = 2 * math.pi * spec.excitation_hz / (velocity * 1e3)  # rad / mm
+    started = time.perf_counter()
+    baseline = cached_simulation(spec)
+    print(f"16 transducers, {spec.excitation_hz / 1e3:.0f} kHz, absorbing ends, wave circumference "
+          f"{spec.pipe.wave_circumference_mm:.1f} mm (= the record's), cell {args.cell_mm} mm; "
+          f"k = {wavenumber:.4f} rad/mm")
+    print(f"{'defect':<20} {'at z / deg':>12} {'b rad':>7} {'b/k mm':>7} {'map dz mm':>9} "
+          f"{'lag in line -> far round (deg)':>31}")
+    for label, defect in DEFECTS:
+        current = cached_simulation(dataclasses.replace(spec, defects=(defect,)))
+        x, lag, amplitude = leg0_phases(baseline, current, defect.axial_mm, defect.angle_deg, velocity)
+        weight = amplitude / amplitude.max()
+        b = float(np.sum(weight * x * lag) / np.sum(weight * x * x))  # lag = b (1 - cos psi), through 0
+        result = analyze(baseline, current)
+        dz = result.defects[0].axial_mm - defect.axial_mm if result.defects else float("nan")
+        order = np.argsort(x)
+        trend = f"{math.degrees(lag[order[0]]):+.0f} -> {math.degrees(lag[order[-1]]):+.0f} (1-cos {x.max():.2f})"
+        print(f"{label:<20} {defect.axial_mm:5.0f} / {defect.angle_deg:3.0f} {b:+7.2f} {b / wavenumber:+7.1f} "
+              f"{dz:+9.1f} {trend:>31}")
+    print(f"({time.perf_counter() - started:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
