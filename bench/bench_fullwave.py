@@ -247,10 +247,13 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_own:
         source = own_from_cache(args.own_cache) if args.own_cache else own_from_files(args.own, missing)
         own = [score("own", e, b, c, thermometer) for e, b, c in source if wanted(e)]
-    lines = table(dev, f"Dev set ({args.dev.name}, {len(dev)} cases)")
+    lines = table(dev, f"Dev set ({args.dev.name}, {len(dev)} cases)") if dev else []
     if own:
         lines += table(own, f"Own full-wave cases ({len(own)} cases)")
+    if dev and own:
         lines += table(dev + own, f"Dev + own ({len(dev) + len(own)} cases)")
+    if not (dev or own):
+        lines.append(f"bench_fullwave: no case matches {' '.join(args.cases or [])}")
     print("\n".join(lines))
     if missing:
         print(f"own cases not found in {args.own} (not scored): {len(missing)}: {', '.join(missing)}")
