@@ -14,10 +14,12 @@ This benchmark computes both, in numpy, on an isotropic point scatterer of the m
 (tests/support/synthetic.py: direct paths both ways round, no end echoes, noise 5e-4) at several
 positions, and prints each map's axial error along the scatterer's line (1 mm steps), then what
 ``assess`` reports with each (the joint one patched into the defect search; ~10x slower than the
-compiled map, fine here). ``--fullwave NAME ...`` also scores dev-set cases (~20 s each with the
-joint map).
+compiled map, fine here). ``--lag RAD ...`` repeats the line peaks with each echo's carrier lagging
+by b (1 - cos psi) (a finite scatterer's phase pattern, as the full-wave notch's, docs/accuracy.md;
+b / k is where a map without overlap would put the point). ``--fullwave NAME ...`` also scores
+dev-set cases (~20 s each with the joint map).
 
-    .venv/bin/python bench/bench_group_overlap.py [--fullwave n16_absorbing_notch_150_30 ...]
+    .venv/bin/python bench/bench_group_overlap.py [--lag 1.3 2.56] [--fullwave n16_absorbing_notch_150_30 ...]
 """
 from __future__ import annotations
 
@@ -50,7 +52,7 @@ from imaging.paths import stacked_paths  # noqa: E402
 from imaging.pipeline import AssessSettings, assess  # noqa: E402
 from imaging.scene import Scene  # noqa: E402
 from imaging.timing import MM_PER_M, surface_distance_mm  # noqa: E402
-from tests.support.synthetic import baseline_and_scatterers  # noqa: E402
+from tests.support.synthetic import C_M_S, baseline_and_scatterers  # noqa: E402
 
 POSITIONS = [(50.0, 100.0), (80.0, 10.0), (150.0, 60.0), (250.0, 200.0), (320.0, 100.0), (370.0, 300.0)]
 DEV = REPO.parent / "shared" / "fullwave-dev"
@@ -140,6 +142,8 @@ def line_peak(image, baseline, current, axial_mm: float, angle_deg: float) -> fl
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--fullwave", nargs="*", default=[], metavar="NAME", help="dev-set cases to score too")
+    parser.add_argument("--lag", nargs="*", type=float, default=[], metavar="RAD",
+                        help="forward phase lags b to repeat the line peaks with")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     print("isotropic point, direct paths both ways round, no end echoes (the map's own model)")
@@ -155,6 +159,13 @@ def main(argv: list[str] | None = None) -> int:
         errors = [surface_distance_mm(d.axial_mm, d.angle_deg, z, a, base.circumference_mm) for d in (plain, joint)]
         print(f"{z:5.0f} / {a:4.0f} {power_line:+14.0f} / {joint_line:+4.0f}      {errors[0]:16.1f} / {errors[1]:4.1f}"
               f"      {plain.di:.4f} / {joint.di:.4f}")
+    for lag in args.lag:
+        k_per_mm = 2 * np.pi * 85e3 / (C_M_S * MM_PER_M)  # the synthetic echoes' carrier (85 kHz) and speed
+        print(f"\nforward phase lag b = {lag:g} rad (b / k = {lag / k_per_mm:.1f} mm): line peak, power / joint (mm)")
+        for z, a in POSITIONS:
+            base, cur = baseline_and_scatterers([(z, a, 0.05)], noise_rms=5e-4, seed=2, forward_lag_rad=lag)
+            print(f"{z:5.0f} / {a:4.0f} {line_peak(local_multipath_pixels, base, cur, z, a):+8.0f} / "
+                  f"{line_peak(joint_pixels, base, cur, z, a):+4.0f}")
     if args.fullwave:
         manifest = {c["case"]: c for c in json.loads((DEV / "manifest.json").read_text())["cases"]}
         print("\ndev-set cases (assess error to each true defect, mm: power / joint)")
