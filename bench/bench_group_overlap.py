@@ -16,10 +16,11 @@ positions, and prints each map's axial error along the scatterer's line (1 mm st
 ``assess`` reports with each (the joint one patched into the defect search; ~10x slower than the
 compiled map, fine here). ``--lag RAD ...`` repeats the line peaks with each echo's carrier lagging
 by b (1 - cos psi) (a finite scatterer's phase pattern, as the full-wave notch's, docs/accuracy.md;
-b / k is where a map without overlap would put the point). ``--fullwave NAME ...`` also scores
+b / k is where a map without overlap would put the point); ``--taper P ...`` with each echo's
+amplitude scaled by cos(psi)^P instead (a pattern without phase law). ``--fullwave NAME ...`` also scores
 dev-set cases (~20 s each with the joint map).
 
-    .venv/bin/python bench/bench_group_overlap.py [--lag 1.3 2.56] [--fullwave n16_absorbing_notch_150_30 ...]
+    .venv/bin/python bench/bench_group_overlap.py [--lag 1.28 2.56] [--taper 2] [--fullwave n16_absorbing_notch_150_30 ...]
 """
 from __future__ import annotations
 
@@ -144,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fullwave", nargs="*", default=[], metavar="NAME", help="dev-set cases to score too")
     parser.add_argument("--lag", nargs="*", type=float, default=[], metavar="RAD",
                         help="forward phase lags b to repeat the line peaks with")
+    parser.add_argument("--taper", nargs="*", type=float, default=[], metavar="P",
+                        help="amplitude patterns cos(psi)^P to repeat the line peaks with")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     print("isotropic point, direct paths both ways round, no end echoes (the map's own model)")
@@ -164,6 +167,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nforward phase lag b = {lag:g} rad (b / k = {lag / k_per_mm:.1f} mm): line peak, power / joint (mm)")
         for z, a in POSITIONS:
             base, cur = baseline_and_scatterers([(z, a, 0.05)], noise_rms=5e-4, seed=2, forward_lag_rad=lag)
+            print(f"{z:5.0f} / {a:4.0f} {line_peak(local_multipath_pixels, base, cur, z, a):+8.0f} / "
+                  f"{line_peak(joint_pixels, base, cur, z, a):+4.0f}")
+    for power in args.taper:
+        print(f"\namplitude pattern cos(psi)^{power:g}, no phase law: line peak, power / joint (mm)")
+        for z, a in POSITIONS:
+            base, cur = baseline_and_scatterers([(z, a, 0.05)], noise_rms=5e-4, seed=2, taper_power=power)
             print(f"{z:5.0f} / {a:4.0f} {line_peak(local_multipath_pixels, base, cur, z, a):+8.0f} / "
                   f"{line_peak(joint_pixels, base, cur, z, a):+4.0f}")
     if args.fullwave:

@@ -81,6 +81,7 @@ def baseline_and_scatterers(
     seed: int = 0,
     both_ways: bool = True,
     forward_lag_rad: float = 0.0,
+    taper_power: float = 0.0,
 ) -> tuple[Measurement, Measurement]:
     """Like ``baseline_and_scatterer`` for several point scatterers (axial_mm, angle_deg, amplitude).
 
@@ -89,6 +90,8 @@ def baseline_and_scatterers(
     (b) gives each echo a carrier phase lag b (1 - cos psi), psi its scattering angle (between the
     incident wave, +z, and the way to the receiver): a finite scatterer's phase pattern, such as a
     notch's (docs/accuracy.md), which on these direct paths equals a move of b / k along the axis.
+    ``taper_power`` (p) scales each echo by cos(psi)^p: an amplitude pattern without a phase law
+    (the mock node's mass radiates as cos^2 of the outgoing direction).
     """
     rng = np.random.default_rng(seed)
     fs = 10e6
@@ -105,7 +108,8 @@ def baseline_and_scatterers(
             r = np.hypot(400.0 - axial_mm, arc)
             lag = forward_lag_rad * (1.0 - (400.0 - axial_mm) / np.maximum(r, 1e-9))
             for m in range(n_rx):
-                cur[m] += amplitude / np.sqrt(max(r[m], 10.0) / 37.0) * hanning_pulse(
+                pattern = ((400.0 - axial_mm) / max(r[m], 1e-9)) ** taper_power
+                cur[m] += amplitude * pattern / np.sqrt(max(r[m], 10.0) / 37.0) * hanning_pulse(
                     t - (axial_mm + r[m]) / c_mm_s, lag_rad=float(lag[m]))
     if noise_rms:
         base = base + rng.normal(0, noise_rms, base.shape)
