@@ -17,10 +17,12 @@ positions, and prints each map's axial error along the scatterer's line (1 mm st
 compiled map, fine here). ``--lag RAD ...`` repeats the line peaks with each echo's carrier lagging
 by b (1 - cos psi) (a finite scatterer's phase pattern, as the full-wave notch's, docs/accuracy.md;
 b / k is where a map without overlap would put the point); ``--taper P ...`` with each echo's
-amplitude scaled by cos(psi)^P instead (a pattern without phase law). ``--fullwave NAME ...`` also scores
+amplitude scaled by cos(psi)^P instead (a pattern without phase law). ``--mock`` prints ``assess``'s
+axial offset on mock-node notches and masses (absorbing ends, no noise) with 15 and 0.5 mm
+transducers. ``--fullwave NAME ...`` also scores
 dev-set cases (~20 s each with the joint map).
 
-    .venv/bin/python bench/bench_group_overlap.py [--lag 1.28 2.56] [--taper 2] [--fullwave n16_absorbing_notch_150_30 ...]
+    .venv/bin/python bench/bench_group_overlap.py [--lag 1.28 2.56] [--taper 2] [--mock] [--fullwave n16_absorbing_notch_150_30 ...]
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -140,6 +143,32 @@ def line_peak(image, baseline, current, axial_mm: float, angle_deg: float) -> fl
     return float(np.argmax(profile)) - 40.0
 
 
+def mock_offsets() -> None:
+    """``assess``'s axial offset on mock records (T(0,1) only, no noise, absorbing ends), both maps."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_accuracy import METHODS, PAPER_CASES, record, scenario
+
+    print("\nmock node, absorbing ends, no noise: assess's axial offset, power / joint (mm)")
+    for length_mm in (15.0, 0.5):
+        for case in (PAPER_CASES[0], PAPER_CASES[1], PAPER_CASES[6], PAPER_CASES[7]):
+            rng = np.random.default_rng(3)
+
+            def node(c, length_mm=length_mm):
+                scn = scenario(c, "absorbing", 0.0)
+                rings = scn.rings.model_copy(update={"transducer_length_mm": length_mm, "transducer_width_mm": length_mm})
+                return scn.model_copy(update={"rings": rings})
+
+            base = record(node(dataclasses.replace(case, positions=())), 20.0, rng)
+            cur = record(node(case), 20.0, rng)
+            offsets = []
+            for joint in (False, True):
+                with joint_map() if joint else contextlib.nullcontext():
+                    result = assess(cur, [base], METHODS["multipath"])
+                found = result.defects[0] if result.defects else result.peak
+                offsets.append(found.axial_mm - case.positions[0][0])
+            print(f"  {length_mm:4.1f} mm transducers, {case.name}: {offsets[0]:+.1f} / {offsets[1]:+.1f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--fullwave", nargs="*", default=[], metavar="NAME", help="dev-set cases to score too")
@@ -147,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="forward phase lags b to repeat the line peaks with")
     parser.add_argument("--taper", nargs="*", type=float, default=[], metavar="P",
                         help="amplitude patterns cos(psi)^P to repeat the line peaks with")
+    parser.add_argument("--mock", action="store_true",
+                        help="also the mock node's notches and masses (absorbing ends), 15 and 0.5 mm transducers")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     print("isotropic point, direct paths both ways round, no end echoes (the map's own model)")
@@ -175,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
             base, cur = baseline_and_scatterers([(z, a, 0.05)], noise_rms=5e-4, seed=2, taper_power=power)
             print(f"{z:5.0f} / {a:4.0f} {line_peak(local_multipath_pixels, base, cur, z, a):+8.0f} / "
                   f"{line_peak(joint_pixels, base, cur, z, a):+4.0f}")
+    if args.mock:
+        mock_offsets()
     if args.fullwave:
         manifest = {c["case"]: c for c in json.loads((DEV / "manifest.json").read_text())["cases"]}
         print("\ndev-set cases (assess error to each true defect, mm: power / joint)")
