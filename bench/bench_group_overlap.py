@@ -169,6 +169,40 @@ def mock_offsets() -> None:
             print(f"  {length_mm:4.1f} mm transducers, {case.name}: {offsets[0]:+.1f} / {offsets[1]:+.1f}")
 
 
+def mock_angles() -> None:
+    """``assess``'s error on mock records (T(0,1) only, no noise) with the defect on a receiver's
+    angle and between two, both maps: bench_accuracy.py's cases all lie on a receiver's angle."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_accuracy import METHODS, Case, record, scenario
+
+    print("\nmock node, no noise: assess's error, power / joint (mm), by angle off the nearest receiver")
+    for kind, n_rx, hz in (("notch", 16, 85e3), ("mass", 8, 75e3)):
+        pitch = 360.0 / n_rx
+        for ends in ("absorbing", "reflecting"):
+            errors: dict[bool, list[float]] = {False: [], True: []}
+            for z in (100.0, 200.0, 300.0):
+                cells = []
+                for off in (0.0, pitch / 4, pitch / 2):
+                    angle = 2 * pitch + off
+                    case = Case(kind, kind, ((z, angle),), n_rx, hz)
+                    rng = np.random.default_rng(3)
+                    base = record(scenario(dataclasses.replace(case, positions=()), ends, 0.0), 20.0, rng)
+                    cur = record(scenario(case, ends, 0.0), 20.0, rng)
+                    pair = []
+                    for joint in (False, True):
+                        with joint_map() if joint else contextlib.nullcontext():
+                            result = assess(cur, [base], METHODS["multipath"])
+                        found = [(d.axial_mm, d.angle_deg) for d in result.defects] or [
+                            (result.peak.axial_mm, result.peak.angle_deg)]
+                        error = min(surface_distance_mm(e[0], e[1], z, angle, cur.circumference_mm) for e in found)
+                        errors[joint].append(error)
+                        pair.append(error)
+                    cells.append(f"{off:5.2f} deg {pair[0]:5.1f} / {pair[1]:5.1f}")
+                print(f"  {kind} {n_rx} rx {ends:10s} {z:3.0f} mm: " + "; ".join(cells))
+            print(f"  {kind} {ends}: median {np.median(errors[False]):.1f} / {np.median(errors[True]):.1f}, "
+                  f"worst {max(errors[False]):.1f} / {max(errors[True]):.1f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--fullwave", nargs="*", default=[], metavar="NAME", help="dev-set cases to score too")
@@ -178,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="amplitude patterns cos(psi)^P to repeat the line peaks with")
     parser.add_argument("--mock", action="store_true",
                         help="also the mock node's notches and masses (absorbing ends), 15 and 0.5 mm transducers")
+    parser.add_argument("--mock-angles", action="store_true",
+                        help="the mock node's notches and masses on and between receiver angles, both ends")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     print("isotropic point, direct paths both ways round, no end echoes (the map's own model)")
@@ -208,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{line_peak(joint_pixels, base, cur, z, a):+4.0f}")
     if args.mock:
         mock_offsets()
+    if args.mock_angles:
+        mock_angles()
     if args.fullwave:
         manifest = {c["case"]: c for c in json.loads((DEV / "manifest.json").read_text())["cases"]}
         print("\ndev-set cases (assess error to each true defect, mm: power / joint)")
