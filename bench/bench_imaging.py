@@ -10,7 +10,8 @@ grid (cached tables), one local 1 mm x 1 deg peak refinement, and a whole
 ``imaging.pipeline.assess`` with default settings for a record with a notch and one without
 (one baseline), and with a library of 24 baselines (the gateway's default library size).
 Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). Numba kernels are
-used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback.
+used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback. ``--joint-groups`` times it with
+the groups projected jointly (an option, off by default).
 
 Part 3 (an 8-transducer ring at 75 kHz, free ends, records of the project's own FDTD: the incident
 wave modelled element by element, imaging/paths.py): the first map (gather tables built), the
@@ -134,9 +135,10 @@ def paper(args) -> None:
 
 def multipath(args) -> None:
     base, notch, quiet, library = mock_records()
-    settings = AssessSettings(wall_mm=WALL_MM)
+    settings = AssessSettings(wall_mm=WALL_MM, joint_groups=args.joint_groups)
     grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
-    scene = Scene.of(base, path_model_for(base, wall_mm=WALL_MM), grid, reference_amplitude_v=reference_amplitude(base))
+    scene = Scene.of(base, path_model_for(base, wall_mm=WALL_MM), grid, reference_amplitude_v=reference_amplitude(base),
+                     joint_groups=args.joint_groups)
     residual = base.traces.astype(np.float64) - notch.traces.astype(np.float64)
     first = time.perf_counter()
     residual_map(residual, scene)
@@ -200,6 +202,8 @@ def main() -> None:
     parser.add_argument("--assess-repeats", type=int, default=31)
     parser.add_argument("--skip-paper", action="store_true", help="only the all-paths part")
     parser.add_argument("--skip-eight", action="store_true", help="leave out the 8-transducer ring")
+    parser.add_argument("--joint-groups", action="store_true",
+                        help="the all-paths part with AssessSettings(joint_groups=True) (docs/imaging.md)")
     args = parser.parse_args()
     if not args.skip_paper:
         paper(args)

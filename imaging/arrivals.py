@@ -91,6 +91,26 @@ def analytic_noise_correlation(fs_hz: float, excitation_hz: float, cycles: int) 
     return out
 
 
+@lru_cache(maxsize=16)
+def analytic_noise_covariance(fs_hz: float, excitation_hz: float, cycles: int) -> np.ndarray:
+    """C(d) = E[A(k) conj A(k + d)] / E|A|^2 of ``analytic_matched``'s output A for white noise, at lags
+    d = 0, 1, ... samples (complex; C(-d) = conj C(d); zero beyond). Read-only.
+
+    Two weighted sums of A over different sample sets, b_g = sum_a w_a A(k_a) and b_h likewise,
+    have covariance E[b_g conj b_h] = sigma^2 sum_ab w_a w_b C(k_b - k_a): the cross-Gram of the
+    map's coherence groups (imaging/multipath.py). Its real part is ``analytic_noise_correlation``.
+    """
+    burst = hann_burst(fs_hz, excitation_hz, cycles)
+    size = burst.size
+    impulse = np.zeros(4 * size)
+    impulse[2 * size] = 1.0
+    response = analytic_matched(impulse, burst)
+    corr = np.array([np.vdot(response[:response.size - d], response[d:]) for d in range(2 * size)])
+    out = np.ascontiguousarray(np.conj(corr / corr[0]))
+    out.setflags(write=False)
+    return out
+
+
 def envelope(x: np.ndarray, *, axis: int = -1) -> np.ndarray:
     """Hilbert envelope |x + i H{x}| along ``axis``."""
     return np.abs(analytic_signal(x, axis=axis))

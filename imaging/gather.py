@@ -22,6 +22,13 @@ weighted samples when several of them fall close together (an element-by-element
 imaging/paths.py): sum over pairs of paths in the group of w_a w_b r(|k_a - k_b|), r the feature's
 noise correlation (imaging/arrivals.py ``analytic_noise_correlation``); paths outside the record
 (k = n) count nothing. Compiled with numba, numpy fallback; tests hold them equal.
+
+5. ``joint_power``: per pixel b^H M^-1 b, b the groups' sums and M^-1 the inverse cross-Gram (4).
+
+4. ``cross_gram``: the same across groups, complex — the groups' cross-Gram of one receiver,
+sum over pairs (a, b) of paths of w_a w_b C(k_b - k_a) into (group of a, group of b), C the
+feature's complex noise covariance (imaging/arrivals.py ``analytic_noise_covariance``), which the
+coherent map projects on jointly (imaging/multipath.py). Compiled with numba, numpy fallback.
 """
 from __future__ import annotations
 
@@ -219,3 +226,99 @@ def coherent_energy(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, correlat
         a.setflags(write=False)
     coherent_energy_compiled(*ro, int(n_samples), out)
     return out
+
+
+def cross_gram_numpy(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, covariance: np.ndarray, n_groups: int,
+                     n_samples: int) -> np.ndarray:
+    """[n_groups, n_groups, n_pixels]: sum over pairs (a, b) of paths of w_a w_b C(k_b - k_a) into
+    (group of a, group of b) (module docstring, 4); ``idx`` [P, n_pixels] (``n_samples``: outside the
+    record), ``w`` [P, n_pixels], ``covariance`` C(d) for d = 0, 1, ... (C(-d) = conj C(d))."""
+    span = covariance.size
+    wv = np.where(idx < n_samples, w.astype(np.float64), 0.0)
+    k = idx.astype(np.int64)
+    lag = k[None, :, :] - k[:, None, :]  # [a, b, pixel]: k_b - k_a
+    distance = np.abs(lag)
+    value = np.where(distance < span, covariance[np.minimum(distance, span - 1)], 0.0)
+    pairs = wv[:, None, :] * wv[None, :, :] * np.where(lag >= 0, value, np.conj(value))
+    member = np.zeros((idx.shape[0], n_groups))
+    member[np.arange(idx.shape[0]), groups] = 1.0
+    return np.moveaxis(member.T @ np.moveaxis(pairs, 2, 0) @ member, 0, 2)
+
+
+def _cross_gram_loops(groups, idx, w, covariance, n_samples, out):  # pragma: no cover - numba
+    n_paths, n_pix = idx.shape
+    span = covariance.shape[0]
+    for a in range(n_paths):
+        ga = groups[a]
+        for b in range(n_paths):
+            gb = groups[b]
+            for x in range(n_pix):
+                ka = idx[a, x]
+                kb = idx[b, x]
+                if ka >= n_samples or kb >= n_samples:
+                    continue
+                lag = kb - ka
+                d = lag if lag >= 0 else -lag
+                if d < span:
+                    c = covariance[d] if lag >= 0 else np.conj(covariance[d])
+                    out[ga, gb, x] += np.float64(w[a, x]) * np.float64(w[b, x]) * c
+
+
+def _compile_cross_gram():
+    numba = numba_module()
+    return None if numba is None else njit(numba, None, _cross_gram_loops)
+
+
+cross_gram_compiled = _compile_cross_gram()
+
+
+def cross_gram(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, covariance: np.ndarray, n_groups: int,
+               n_samples: int) -> np.ndarray:
+    """``cross_gram_numpy``'s result, by the compiled kernel when available."""
+    if cross_gram_compiled is None:
+        return cross_gram_numpy(groups, idx, w, covariance, n_groups, n_samples)
+    out = np.zeros((n_groups, n_groups, idx.shape[1]), dtype=np.complex128)
+    cross_gram_compiled(np.ascontiguousarray(groups, dtype=np.int64), np.ascontiguousarray(idx, dtype=np.int64),
+                        np.ascontiguousarray(w, dtype=np.float64), np.ascontiguousarray(covariance, dtype=np.complex128),
+                        int(n_samples), out)
+    return out
+
+
+def joint_power_numpy(sums: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """[n_pixels]: Re sum_gh conj(b_g) M^-1_gh b_h per pixel, ``sums`` b [G, n_pixels], ``inverse`` [G, G, n_pixels]."""
+    return np.einsum("gx,ghx,hx->x", sums.conj(), inverse, sums).real
+
+
+def _joint_power_loops(sums, inverse, out):  # pragma: no cover - numba
+    n_groups, n_pix = sums.shape
+    acc = np.empty(n_pix, dtype=np.complex128)
+    for x in range(n_pix):
+        out[x] = 0.0
+    for g in range(n_groups):
+        for x in range(n_pix):
+            acc[x] = 0j
+        for h in range(n_groups):
+            for x in range(n_pix):
+                acc[x] += inverse[g, h, x] * sums[h, x]
+        for x in range(n_pix):
+            out[x] += (np.conj(sums[g, x]) * acc[x]).real
+
+
+def _compile_joint_power():
+    numba = numba_module()
+    return None if numba is None else njit(numba, None, _joint_power_loops)
+
+
+joint_power_compiled = _compile_joint_power()
+
+
+def joint_power(sums: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """``joint_power_numpy``'s result (same pixel layout as ``sums[0]``), by the compiled kernel when available."""
+    shape = sums.shape[1:]
+    flat_sums = np.ascontiguousarray(sums.reshape(sums.shape[0], -1))
+    flat_inverse = np.ascontiguousarray(inverse.reshape(inverse.shape[:2] + (-1,)))
+    if joint_power_compiled is None:
+        return joint_power_numpy(flat_sums, flat_inverse).reshape(shape)
+    out = np.empty(flat_sums.shape[1])
+    joint_power_compiled(flat_sums, flat_inverse, out)
+    return out.reshape(shape)

@@ -88,6 +88,8 @@ NEAR_RING_WAVELENGTHS = 0.5  # ... and one this close to a ring (in wavelengths)
 FIT_WRAPS = 6  # the found defects' echoes are fitted along this many legs round the pipe (the map: 2)
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
+FAINT_RELATIVE_DI_JOINT = 0.35  # ... on a map projecting its groups jointly (a defect whose groups overlap scores
+#                                lower there: mock gate bench, 0.3 -> 0.35 took 15 spurious of 108 to 0, docs/imaging.md)
 FAINT_PATTERN_ORDERS = 2  # ... up to this order for a faint one (below FAINT_RELATIVE_DI of the first)
 ECHO_FIT_SPAN_MM = 40.0  # a sparse ring's defect is placed by its echo fit at most this far from the map's peak
 ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is ~20-30 mm wide)
@@ -302,7 +304,8 @@ def find_defects(
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
         at_a_ring = _on_the_span_edge(grid, estimate) if not found else _near_a_ring(scene, estimate)
-        faint = bool(found) and estimate.di < FAINT_RELATIVE_DI * found[0].estimate.di
+        faint_ratio = FAINT_RELATIVE_DI_JOINT if scene.joint_groups else FAINT_RELATIVE_DI
+        faint = bool(found) and estimate.di < faint_ratio * found[0].estimate.di
         if at_a_ring and faint:
             rejected.append(Found(estimate, di_map, 0.0))  # too weak to bias the defects: not worth its unknowns
             continue

@@ -40,10 +40,15 @@ from functools import lru_cache
 import numpy as np
 from cachetools import LRUCache, cached
 
-from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, reference_amplitude
+from imaging.arrivals import (
+    analytic_noise_correlation,
+    analytic_noise_covariance,
+    end_reflection_coefficients,
+    reference_amplitude,
+)
 from imaging.dimap import DIMap, check_compatible
 from imaging.features import residual_feature
-from imaging.gather import accumulate, coherent_energy, local_sums_compiled
+from imaging.gather import accumulate, coherent_energy, cross_gram, joint_power, local_sums_compiled
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, sparse_ring, stacked_paths
@@ -52,6 +57,9 @@ from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
+LOCAL_GRAM_CACHE = 128  # small grids' Gram inverses kept (a 17 x 17 grid's: ~0.3 MB with 8 groups)
+GRAM_RIDGE = 1e-6  # the groups' cross-Gram is inverted with this fraction of its largest diagonal term added
+#                   to the diagonal (a group without paths there, or two coinciding ones, stay finite)
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
 WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
 # A sparse ring is modelled element by element only where its baseline shows it: the element model
@@ -75,12 +83,18 @@ def _reciprocal(den: np.ndarray) -> np.ndarray:
 
 
 def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
-             inverse_weight_sq: np.ndarray | None = None) -> np.ndarray:
+             inverse_weight_sq: np.ndarray | None = None, gram_inverse: np.ndarray | None = None) -> np.ndarray:
     """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring).
 
-    ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables)."""
+    ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables).
+    ``gram_inverse`` [n_groups, n_groups, ...]: the (pseudo-)inverse of the groups' cross-Gram; with it
+    a coherent map projects on the groups jointly (b^H M^-1 b) instead of adding their powers."""
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
+        if gram_inverse is not None:
+            joint = joint_power(groups, gram_inverse)
+            snr = np.sqrt(np.maximum(joint, 0.0) / groups.shape[0])
+            return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
         if inverse_weight_sq is None:
             inverse_weight_sq = _reciprocal(weight_sq)
         power = (groups.real**2 + groups.imag**2) * inverse_weight_sq
@@ -206,6 +220,39 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
     return total, inverse
 
 
+def gram_inverse(gram: np.ndarray) -> np.ndarray:
+    """The inverse of each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, same layout."""
+    stacked = np.moveaxis(gram, (0, 1), (-2, -1))
+    return np.ascontiguousarray(np.moveaxis(np.linalg.inv(_with_ridge(stacked)), (-2, -1), (0, 1)))
+
+
+def _with_ridge(stacked: np.ndarray) -> np.ndarray:
+    """[..., G, G] Grams plus GRAM_RIDGE x each one's largest diagonal term (at least a tiny absolute one)."""
+    diagonal = np.diagonal(stacked, axis1=-2, axis2=-1).real
+    ridge = GRAM_RIDGE * np.maximum(diagonal.max(axis=-1), 1e-300)
+    return stacked + ridge[..., None, None] * np.eye(stacked.shape[-1])
+
+
+@lru_cache(maxsize=32)
+def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
+                        t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
+                        mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
+    """The inverse of the groups' cross-Gram summed over the healthy receivers [G, G, n_axial, n_angle]
+    (a plane-wave model's: one path per group and receiver). ``burst``: (excitation_hz, cycles) of the feature."""
+    n_groups = coherence_groups(model)
+    covariance = analytic_noise_covariance(fs_hz, *burst)
+    total = np.zeros((n_groups, n_groups) + grid.shape, dtype=np.complex128)
+    for (angle, roll), healthy in zip(plan, mask, strict=True):
+        if healthy:
+            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
+                                  cycles)
+            gram = cross_gram(table.groups, table.idx, table.w, covariance, n_groups, n_samples)
+            total += np.roll(gram.reshape(total.shape), roll, axis=3)
+    inverse = gram_inverse(total)
+    inverse.setflags(write=False)
+    return inverse
+
+
 def _check_arguments(feature: np.ndarray, scene: Scene, normalise: str) -> None:
     if feature.ndim != 2 or feature.shape[0] != scene.n_rx:
         raise MultipathError(f"{scene.n_rx} receiver angles for feature rows of shape {feature.shape}")
@@ -243,8 +290,11 @@ def multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr
         if mask[m]:
             table = _cached_table(grid, angle, *geometry)
             accumulate(total, padded[m], table.groups, table.idx, table.w, roll)
-    weight_sq, inverse = _weight_sq_total(grid, plan, *geometry, tuple(bool(x) for x in mask))
-    return _combine(total, weight_sq, normalise, inverse)
+    healthy = tuple(bool(x) for x in mask)
+    weight_sq, inverse = _weight_sq_total(grid, plan, *geometry, healthy)
+    gram_inv = (_gram_inverse_total(grid, plan, *geometry, healthy, (scene.excitation_hz, scene.cycles))
+                if coherent and scene.joint_groups and not scene.model.elements else None)
+    return _combine(total, weight_sq, normalise, inverse, gram_inv)
 
 
 def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr",
@@ -276,7 +326,34 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
                             float(c_mm_s), scene.t0_s, scene.fs_hz, int(power), groups, weight_sq)
     elif rows.size:  # numpy; always for a model with Tx elements (the compiled kernel has no element images)
         groups, weight_sq = _local_numpy_sums(feature, scene, rows)
-    return _combine(groups, weight_sq, normalise)
+    gram_inv = (_local_gram_inverse(grid, model, tuple(float(a) for a in rx_angles_deg[rows]), scene.velocity_m_s,
+                                    scene.t0_s, scene.fs_hz, feature.shape[1], int(power), scene.excitation_hz,
+                                    scene.cycles)
+                if coherent and scene.joint_groups and not model.elements else None)
+    return _combine(groups, weight_sq, normalise, gram_inverse=gram_inv)
+
+
+@lru_cache(maxsize=LOCAL_GRAM_CACHE)
+def _local_gram_inverse(grid: Grid, model: PathModel, rx_angles_deg: tuple[float, ...], velocity_m_s: float,
+                        t0_s: float, fs_hz: float, n: int, power: int, excitation_hz: float,
+                        cycles: int) -> np.ndarray:
+    """``_gram_inverse_total`` for a small grid (plane-wave model; the healthy receivers' angles), computed
+    directly. Cached: a node's records of one defect refine their peaks on the same small grids."""
+    c_mm_s = velocity_m_s * MM_PER_M
+    n_groups = coherence_groups(model)
+    total = np.zeros((n_groups, n_groups, grid.shape[0] * grid.shape[1]), dtype=np.complex128)
+    covariance = analytic_noise_covariance(fs_hz, excitation_hz, cycles)
+    for angle in rx_angles_deg:
+        rel = grid.angle_deg[None, :] - angle
+        family, length, weight = stacked_paths(model, grid.axial_mm[:, None], rel, angle)
+        length, weight = np.broadcast_arrays(length, weight)
+        k = np.floor((length / c_mm_s - t0_s) * fs_hz + 0.5).reshape(family.size, -1)
+        inside = (k >= 0) & (k < n)
+        total += cross_gram(family, np.where(inside, k, n).astype(np.int64),
+                            (weight ** power).reshape(family.size, -1), covariance, n_groups, n)
+    inverse = gram_inverse(total.reshape((n_groups, n_groups) + grid.shape))
+    inverse.setflags(write=False)
+    return inverse
 
 
 def _local_numpy_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -316,11 +393,14 @@ def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: st
     c_mm_s = scene.velocity_m_s * MM_PER_M
     n_fam = coherence_groups(model)
     correlation = analytic_noise_correlation(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    covariance = analytic_noise_covariance(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    joint = coherent and scene.joint_groups and not model.elements  # the groups projected on jointly (their cross-Gram)
     out = np.zeros(grid.shape)
     for i, z in enumerate(grid.axial_mm):
         for j, theta in enumerate(grid.angle_deg):
             sums = [0j] * n_fam
             weight_sq = [0.0] * n_fam
+            gram = np.zeros((n_fam, n_fam), dtype=complex)
             for m in range(n_rx):
                 if not scene.rx_mask[m]:
                     continue
@@ -338,10 +418,22 @@ def literal_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: st
                             lag = abs(ka - kb)
                             weight_sq[family] += wa * wb * (1.0 if lag == 0 else
                                                             float(correlation[lag]) if lag < correlation.size else 0.0)
+                if joint:
+                    paths = [(f, k, w) for f, members in enumerate(taken) for k, w in members]
+                    for fa, ka, wa in paths:
+                        for fb, kb, wb in paths:
+                            lag = kb - ka
+                            c = complex(covariance[abs(lag)]) if abs(lag) < covariance.size else 0j
+                            gram[fa, fb] += wa * wb * (c if lag >= 0 else c.conjugate())
             total_sq = sum(weight_sq)
             if total_sq <= 0:
                 continue
-            if coherent:
+            if joint:
+                b = np.array(sums)
+                quadratic = float((b.conj() @ np.linalg.inv(_with_ridge(gram)) @ b).real)
+                snr = math.sqrt(max(quadratic, 0.0) / n_fam)
+                out[i, j] = snr if normalise == "snr" else snr * math.sqrt(n_fam) / math.sqrt(total_sq)
+            elif coherent:
                 snr = math.sqrt(sum(abs(s) ** 2 / q for s, q in zip(sums, weight_sq, strict=True) if q > 0) / n_fam)
                 out[i, j] = snr if normalise == "snr" else snr * math.sqrt(n_fam) / math.sqrt(total_sq)
             else:

@@ -86,6 +86,9 @@ class AssessSettings:
     model_ends: bool = True
     check_health: bool = True
     modal_orders: int | Literal["auto", "off"] = "off"
+    # Project the coherent map on its groups (ways round) jointly instead of adding their powers
+    # (docs/imaging.md "The groups' overlap"); off until the accuracy tables are re-measured with it.
+    joint_groups: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -260,7 +263,8 @@ def scene_for(match: BaselineMatch, entry: Measurement, current: Measurement, gr
             return remove_low_orders(x, current.rx_angles_deg, orders, mask)
 
     return Scene.of(match.baseline, model, grid, feature=settings.feature,
-                    reference_amplitude_v=reference_amplitude(entry), rx_mask=mask, project=project)
+                    reference_amplitude_v=reference_amplitude(entry), rx_mask=mask, project=project,
+                    joint_groups=settings.joint_groups)
 
 
 def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, settings: AssessSettings,

@@ -56,6 +56,7 @@ class Scene:
     power: int = 1
     reference_amplitude_v: float = 1.0
     project: Callable[[np.ndarray], np.ndarray] | None = None
+    joint_groups: bool = False  # a coherent map projects on its groups jointly (imaging/multipath.py)
 
     def __post_init__(self) -> None:
         angles = np.array(self.rx_angles_deg, dtype=np.float64)
@@ -72,7 +73,7 @@ class Scene:
     @classmethod
     def of(cls, reference: Measurement, model: PathModel, grid: Grid | None = None, *, feature: str = "analytic",
            reference_amplitude_v: float = 1.0, rx_mask: np.ndarray | None = None,
-           project: Callable[[np.ndarray], np.ndarray] | None = None) -> Scene:
+           project: Callable[[np.ndarray], np.ndarray] | None = None, joint_groups: bool = False) -> Scene:
         """The scene of records taken with ``reference``'s receivers, timing and excitation."""
         return cls(
             rx_angles_deg=reference.rx_angles_deg,
@@ -89,6 +90,7 @@ class Scene:
             power=feature_power(feature),
             reference_amplitude_v=float(reference_amplitude_v),
             project=project,
+            joint_groups=joint_groups,
         )
 
     @property
