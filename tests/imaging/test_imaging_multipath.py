@@ -6,7 +6,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from imaging import gather
 from imaging.analysis import analyze
+from imaging.arrivals import analytic_noise_covariance
 from imaging.grid import Grid
 from imaging.multipath import literal_multipath_pixels, multipath_pixels
 from imaging.paths import PathModel, PathModelError, wrap_offsets_mm
@@ -112,3 +114,21 @@ def test_noise_alone_is_not_detected_and_a_scatterer_is():
     assert not quiet.detected and quiet.defects == []
     assert loud.detected and loud.peak_di > 3 * quiet.peak_di
     assert loud.as_json()["detected"] is True and loud.as_json()["method"] == "multipath"
+
+
+@pytest.mark.skipif(not gather.compiled(), reason="numba is not installed")
+def test_compiled_cross_gram_and_joint_power_equal_their_numpy_sums():
+    rng = np.random.default_rng(11)
+    covariance = analytic_noise_covariance(10e6, 85e3, 5)
+    groups = rng.integers(0, 4, 10).astype(np.int64)
+    idx = rng.integers(0, 900, (10, 30)).astype(np.int32)  # 900 = outside a record of 900 samples
+    w = rng.random((10, 30)).astype(np.float32)
+    fast = gather.cross_gram(groups, idx, w, covariance, 4, 900)
+    slow = gather.cross_gram_numpy(groups, idx, w, covariance, 4, 900)
+    np.testing.assert_allclose(fast, slow, rtol=1e-9, atol=1e-12)
+    per_pixel = np.moveaxis(fast, 2, 0)
+    np.testing.assert_allclose(per_pixel, np.conj(np.swapaxes(per_pixel, 1, 2)), atol=1e-12)  # Hermitian
+    assert np.all(np.linalg.eigvalsh(per_pixel) > -1e-9)  # a covariance: positive semi-definite
+    sums = rng.standard_normal((4, 30)) + 1j * rng.standard_normal((4, 30))
+    inverse = np.moveaxis(np.linalg.inv(per_pixel + 1e-3 * np.eye(4)), 0, 2).copy()
+    np.testing.assert_allclose(gather.joint_power(sums, inverse), gather.joint_power_numpy(sums, inverse), rtol=1e-9)
