@@ -80,13 +80,7 @@ def analytic_noise_correlation(fs_hz: float, excitation_hz: float, cycles: int) 
     Two samples of the matched feature ``d`` apart share noise in this proportion; a statistic adding
     several nearby samples of one receiver has variance sum_ab w_a w_b r(|k_a - k_b|), not sum_a w_a^2.
     """
-    burst = hann_burst(fs_hz, excitation_hz, cycles)
-    size = burst.size
-    impulse = np.zeros(4 * size)
-    impulse[2 * size] = 1.0
-    response = analytic_matched(impulse, burst)
-    corr = np.array([np.vdot(response[:response.size - d], response[d:]) for d in range(2 * size)])
-    out = np.ascontiguousarray((corr / corr[0]).real)
+    out = np.ascontiguousarray(analytic_noise_covariance(fs_hz, excitation_hz, cycles).real)
     out.setflags(write=False)
     return out
 
