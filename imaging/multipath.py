@@ -87,7 +87,7 @@ def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
     """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring).
 
     ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables).
-    ``gram_inverse`` [n_groups, n_groups, ...]: the (pseudo-)inverse of the groups' cross-Gram; with it
+    ``gram_inverse`` [n_groups, n_groups, ...]: the (ridged) inverse of the groups' cross-Gram; with it
     a coherent map projects on the groups jointly (b^H M^-1 b) instead of adding their powers."""
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
@@ -301,7 +301,7 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
                            compiled: bool = True) -> np.ndarray:
     """The same map as ``multipath_pixels`` for a small one-off ``scene.grid`` (a peak's neighbourhood, one pixel).
 
-    Nothing is cached: every receiver's paths to every pixel are computed here in double
+    Nothing is cached but, for ``scene.joint_groups``, the grid's Gram inverse: every receiver's paths to every pixel are computed here in double
     precision and the feature gathered directly, by the compiled kernel of imaging/gather.py
     (``compiled`` and numba installed) or in numpy. Cost grows as n_rx x n_paths x n_pixels:
     keep the grid to a few hundred pixels.
