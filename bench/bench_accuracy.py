@@ -9,7 +9,8 @@ without compensation; two notches at once; a false-alarm campaign of defect-free
 with noise and +-2 degC drift. Then the same cases with the other guided modes switched on
 (ring leakage of L(0,1), L(0,2) and flexural modes at assumed levels for 8- and 16-transducer
 rings, and mode conversion at the defect), with and without a +3 degC change, and their own
-false-alarm campaign. Prints markdown tables (docs/accuracy.md holds a copy).
+false-alarm campaign. Also the notches and masses a quarter and half a receiver pitch off a
+receiver's angle, the default map against the one that adds its groups' powers. Prints markdown tables (docs/accuracy.md holds a copy).
 
     .venv/bin/python bench/bench_accuracy.py [--campaign 1000] [--skip-features] [--modes-campaign 250]
         [--only-modes]
@@ -62,6 +63,14 @@ PAPER_CASES = [
     *(Case(f"notch {z:.0f} mm 90 deg", "notch", ((z, 90.0),), 16, 85e3) for z in (100.0, 200.0, 300.0)),
     *(Case(f"notch 200 mm {a:g} deg", "notch", ((200.0, a),), 16, 85e3) for a in (0.0, 157.5, 315.0)),
     *(Case(f"mass {z:.0f} mm 90 deg", "mass", ((z, 90.0),), 8, 75e3) for z in (100.0, 200.0, 300.0)),
+]
+# Every position above lies on a receiver's angle (90 deg: a multiple of 22.5 and of 45): where the
+# map does best. The same defects a quarter and half a pitch off a receiver (docs/imaging.md "The
+# groups' overlap"): 16 rings' pitch 22.5 deg, 8 rings' 45 deg.
+OFF_RECEIVER_CASES = [
+    *(Case(f"notch {z:.0f} mm {a:g} deg", "notch", ((z, a),), 16, 85e3)
+      for z in (100.0, 200.0, 300.0) for a in (95.625, 101.25)),
+    *(Case(f"mass {z:.0f} mm {a:g} deg", "mass", ((z, a),), 8, 75e3) for z in (100.0, 200.0, 300.0) for a in (101.25, 112.5)),
 ]
 TWO_NOTCHES = Case("two notches", "notch", ((150.0, 45.0), (300.0, 225.0)), 16, 85e3)
 
@@ -307,6 +316,10 @@ def main() -> None:
     run_condition("Noise, current +3 degC, without compensation", PAPER_CASES, ends, NOISE_V_RMS, 3.0,
                   uncompensated, 2)
     run_condition("Two notches at once (noise, same temperature)", [TWO_NOTCHES], ends, NOISE_V_RMS, 0.0, METHODS, 3)
+    combined = {"multipath": METHODS["multipath"],
+                "groups' powers added": replace(METHODS["multipath"], joint_groups=False)}
+    run_condition("Off a receiver's angle (noise, current +3 degC, with compensation)", OFF_RECEIVER_CASES, ends,
+                  NOISE_V_RMS, 3.0, combined, 7)
     if not args.skip_features:
         features = {f"multipath/{f}": settings_for("multipath", f) for f in ("analytic", "envelope", "squared")}
         run_condition("Features compared (noise, same temperature)", PAPER_CASES, ends, NOISE_V_RMS, 0.0, features, 4)

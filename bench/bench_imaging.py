@@ -10,8 +10,9 @@ grid (cached tables), one local 1 mm x 1 deg peak refinement, and a whole
 ``imaging.pipeline.assess`` with default settings for a record with a notch and one without
 (one baseline), and with a library of 24 baselines (the gateway's default library size).
 Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). Numba kernels are
-used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback. ``--joint-groups`` times it with
-the groups projected jointly (an option, off by default).
+used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback. ``--power-sum`` times it with
+the groups' powers added (``joint_groups=False``, the default until 2026-12-05) instead of their
+joint projection.
 
 Part 3 (an 8-transducer ring at 75 kHz, free ends, records of the project's own FDTD: the incident
 wave modelled element by element, imaging/paths.py): the first map (gather tables built), the
@@ -135,10 +136,11 @@ def paper(args) -> None:
 
 def multipath(args) -> None:
     base, notch, quiet, library = mock_records()
-    settings = AssessSettings(wall_mm=WALL_MM, joint_groups=args.joint_groups)
+    joint = not args.power_sum
+    settings = AssessSettings(wall_mm=WALL_MM, joint_groups=joint)
     grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
     scene = Scene.of(base, path_model_for(base, wall_mm=WALL_MM), grid, reference_amplitude_v=reference_amplitude(base),
-                     joint_groups=args.joint_groups)
+                     joint_groups=joint)
     residual = base.traces.astype(np.float64) - notch.traces.astype(np.float64)
     first = time.perf_counter()
     residual_map(residual, scene)
@@ -202,8 +204,9 @@ def main() -> None:
     parser.add_argument("--assess-repeats", type=int, default=31)
     parser.add_argument("--skip-paper", action="store_true", help="only the all-paths part")
     parser.add_argument("--skip-eight", action="store_true", help="leave out the 8-transducer ring")
-    parser.add_argument("--joint-groups", action="store_true",
-                        help="the all-paths part with AssessSettings(joint_groups=True) (docs/imaging.md)")
+    parser.add_argument("--power-sum", action="store_true",
+                        help="the all-paths part with the groups' powers added, AssessSettings(joint_groups=False), "
+                             "as before 2026-12-05 (docs/imaging.md)")
     args = parser.parse_args()
     if not args.skip_paper:
         paper(args)

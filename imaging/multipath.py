@@ -3,8 +3,16 @@
 Real features (envelope, squared), an incoherent sum:
     DI(pixel) = sum_m sum_p w_mp^q F_m[k_mp] / sqrt(sum_m sum_p w_mp^(2q))
 Complex features (analytic), coherent within each group g of paths (a path family and one way
-round the pipe, imaging/paths.py ``coherence_groups``), groups added in power:
-    DI(pixel) = sqrt( sum_g |sum_{m, p in g} w_mp A_m[k_mp]|^2 / sum_{m, p in g} w_mp^2 / G )
+round the pipe, imaging/paths.py ``coherence_groups``), the groups projected on jointly
+(``Scene.joint_groups``, the default):
+    DI(pixel) = sqrt( b^H M^-1 b / G ),  b_g = sum_{m, p in g} w_mp A_m[k_mp],
+    M_gh = sum_m sum_{p in g, q in h} w_mp w_mq C(k_mq - k_mp)
+(C the normalised feature's complex noise autocorrelation, imaging/arrivals.py): the two ways
+round reach a receiver near the scatterer's far side within a burst of each other, so their
+templates overlap; or, with ``joint_groups=False`` and always for a sparse ring's element model,
+added in power as if they did not (which moves a point 10-17 mm towards the Rx ring where the
+axial lobe is broad, docs/imaging.md "The groups' overlap"):
+    DI(pixel) = sqrt( sum_g |b_g|^2 / sum_{m, p in g} w_mp^2 / G )
 
 over healthy receivers m and paths p, where k_mp = round((L_mp / c - t0) fs) is the sample at
 which path p's burst starts, F/A the normalised feature (imaging/features.py), w the path's

@@ -87,8 +87,9 @@ class AssessSettings:
     check_health: bool = True
     modal_orders: int | Literal["auto", "off"] = "off"
     # Project the coherent map on its groups (ways round) jointly instead of adding their powers
-    # (docs/imaging.md "The groups' overlap"); off until the accuracy tables are re-measured with it.
-    joint_groups: bool = False
+    # (docs/imaging.md "The groups' overlap"; the default since 2026-12-05). Sparse-ring element
+    # models add their powers either way.
+    joint_groups: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

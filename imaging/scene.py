@@ -56,7 +56,7 @@ class Scene:
     power: int = 1
     reference_amplitude_v: float = 1.0
     project: Callable[[np.ndarray], np.ndarray] | None = None
-    joint_groups: bool = False  # a coherent map projects on its groups jointly (imaging/multipath.py)
+    joint_groups: bool = True  # a coherent map projects on its groups jointly (imaging/multipath.py)
 
     def __post_init__(self) -> None:
         angles = np.array(self.rx_angles_deg, dtype=np.float64)
@@ -73,7 +73,7 @@ class Scene:
     @classmethod
     def of(cls, reference: Measurement, model: PathModel, grid: Grid | None = None, *, feature: str = "analytic",
            reference_amplitude_v: float = 1.0, rx_mask: np.ndarray | None = None,
-           project: Callable[[np.ndarray], np.ndarray] | None = None, joint_groups: bool = False) -> Scene:
+           project: Callable[[np.ndarray], np.ndarray] | None = None, joint_groups: bool = True) -> Scene:
         """The scene of records taken with ``reference``'s receivers, timing and excitation."""
         return cls(
             rx_angles_deg=reference.rx_angles_deg,

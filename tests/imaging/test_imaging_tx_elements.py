@@ -126,15 +126,21 @@ def test_the_fast_and_local_maps_of_an_element_model_equal_the_literal_sum():
 
 
 def test_noise_alone_scores_the_same_whether_the_ring_is_modelled_by_elements_or_as_a_plane_wave():
+    # The plane-wave map projects on its groups jointly, the element model adds their powers: the
+    # noise floor both are thresholded against must still be the same. Three noise records; the
+    # 99th percentile (one record's maximum varied 0.92-1.21 between them).
     grid = default_grid("multipath", 400.0, np.arange(8) * 45.0)
-    noise = np.random.default_rng(11).standard_normal((8, 6000))
     plane_scene, element_scene = (_scene(PathModel(400.0, MID_WALL_MM, C_MM_S / 75e3), grid),
                                   _scene(_ring_model(8, 75e3), grid))
-    plane = multipath_pixels(residual_feature(noise, plane_scene), plane_scene)
-    elements = multipath_pixels(residual_feature(noise, element_scene), element_scene)
+    assert plane_scene.joint_groups
+    plane, elements = [], []
+    for seed in (11, 12, 13):
+        noise = np.random.default_rng(seed).standard_normal((8, 6000))
+        plane.append(multipath_pixels(residual_feature(noise, plane_scene), plane_scene))
+        elements.append(multipath_pixels(residual_feature(noise, element_scene), element_scene))
     # The matched feature of white noise is correlated over a burst: only the pairwise energy keeps these near 1.
     assert np.median(elements) / np.median(plane) == pytest.approx(1.0, abs=0.1)
-    assert np.max(elements) / np.max(plane) == pytest.approx(1.0, abs=0.2)
+    assert np.percentile(elements, 99) / np.percentile(plane, 99) == pytest.approx(1.0, abs=0.1)
 
 
 @pytest.mark.parametrize("shared", [True, False])
@@ -166,8 +172,10 @@ def test_a_near_rigid_mass_seen_by_an_eight_ring_is_found_on_full_wave_physics(a
     assert result.defects, "the mass must be detected"
     best = result.defects[0]
     assert surface_distance_mm(best.axial_mm, best.angle_deg, axial_mm, angle_deg, MID_WALL_MM) < 10.0
+    # The plane-wave map with its groups' powers added (measured 181 and 189 mm off); projected on
+    # jointly it found the mass at 200 mm 4.7 mm off, the one at 100 mm still 132 mm off.
     plane_scene = Scene.of(baseline, path_model_for(baseline, wall_mm=4.0, elements=False), grid,
-                           reference_amplitude_v=reference_amplitude(baseline))
+                           reference_amplitude_v=reference_amplitude(baseline), joint_groups=False)
     residual = baseline.traces.astype(np.float64) - current.traces.astype(np.float64)
     plane = multipath_pixels(residual_feature(residual, plane_scene), plane_scene)
     i, j = np.unravel_index(np.argmax(plane), plane.shape)
