@@ -156,7 +156,7 @@ def multipath(args) -> None:
     }
     for fn in timings.values():
         fn()  # warm: tables, memo of the baseline's direct arrival
-    print(f"\nall-paths imaging (mock node, reflecting ends, +1 degC, default AssessSettings), one thread, "
+    print(f"\nall-paths imaging (mock node, reflecting ends, +1 degC, {'groups added in power' if args.power_sum else 'default AssessSettings'}), one thread, "
           f"numba kernels: {'yes' if gather.compiled() else 'no (numpy fallback)'}")
     print(f"  first map incl. building the gather tables: {cold_ms:8.1f} ms")
     medians = {}

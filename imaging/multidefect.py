@@ -32,7 +32,10 @@ either end of the imaged span (within EDGE_MM of the Tx or Rx ring), or in a rin
 rise beyond it, in the near field its far-field paths do not hold; it is what changes at a ring (its
 transducers, what leaks or converts there, the direct wave's shadow of a found defect) — so it is
 not reported, but its echoes are fitted and removed with the defects' (they would bias them; a faint
-one is only ruled out: fitting it moved the first defect on full-wave records, 26 -> 33 mm). The
+one is only ruled out: fitting it moved the first defect on full-wave records, 26 -> 33 mm). So is a
+later located peak that a change at a ring on its line (a scatterer on an end of the span at its
+angle) explains as well (``_Search.ring_instead``): along a receiver's line the map is nearly flat,
+and the joint map can place a ring's change tens of mm from it. The
 strongest maximum of all is treated alike when it lies on the span's end: fitted, and the next peak
 is sought as the first defect; it is reported only when nothing located crosses the threshold after
 it (a change at a ring is still a change). A last pass re-locates
