@@ -10,7 +10,8 @@ with noise and +-2 degC drift. Then the same cases with the other guided modes s
 (ring leakage of L(0,1), L(0,2) and flexural modes at assumed levels for 8- and 16-transducer
 rings, and mode conversion at the defect), with and without a +3 degC change, and their own
 false-alarm campaign. Also the notches and masses a quarter and half a receiver pitch off a
-receiver's angle, the default map against the one that adds its groups' powers. Prints markdown tables (docs/accuracy.md holds a copy).
+receiver's angle, the default map against the one that adds its groups' powers. Prints markdown
+tables (docs/accuracy.md holds a copy).
 
     .venv/bin/python bench/bench_accuracy.py [--campaign 1000] [--skip-features] [--modes-campaign 250]
         [--only-modes]

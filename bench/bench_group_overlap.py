@@ -2,19 +2,20 @@
 
 Until 2026-12-05 the coherent map (imaging/multipath.py) scored a pixel as the sum over coherence
 groups (a path family and one way round the pipe) of each group's matched-filter power, as if the
-groups' templates were orthogonal (``joint_groups=False`` still does). On a receiver near the scatterer's far side the two ways round arrive
-within a burst of each other, so they are not: the sum then counts their overlap twice, and where
-the axial lobe is broad (no end echoes, little 1 - cos psi across the ring) that moves the peak.
+groups' templates were orthogonal (``joint_groups=False`` still does). On a receiver near the
+scatterer's far side the two ways round arrive within a burst of each other, so they are not: the
+sum then counts their overlap twice, and where the axial lobe is broad (no end echoes, little
+1 - cos psi across the ring) that moves the peak.
 The generalised likelihood ratio with one free complex amplitude per group is the energy of the
 record's projection onto the groups' templates jointly: DI^2 = b^H M^-1 b / G, b the groups' sums
-(as now), M their cross-Gram (sum over receivers and pairs of paths of w_p w_q C(k_q - k_p), C the
+(as before), M their cross-Gram (sum over receivers and pairs of paths of w_p w_q C(k_q - k_p), C the
 matched feature's complex autocorrelation); noise alone still scores the same (E b b^H = sigma^2 M).
 
-This benchmark computes both (the joint one is ``AssessSettings(joint_groups=True)``, the default since
-2026-12-05; the power sum is ``joint_groups=False``) on an isotropic point scatterer of the map's own model (tests/support/synthetic.py:
-direct paths both ways round, no end echoes, noise 5e-4) at several positions, and prints each
-map's axial error along the scatterer's line (1 mm steps), then what ``assess`` reports with each.
-``--lag RAD ...`` repeats the line peaks with each echo's carrier lagging
+This benchmark computes both (the joint one is ``AssessSettings(joint_groups=True)``, the default
+since 2026-12-05; the power sum is ``joint_groups=False``) on an isotropic point scatterer of the
+map's own model (tests/support/synthetic.py: direct paths both ways round, no end echoes, noise
+5e-4) at several positions, and prints each map's axial error along the scatterer's line (1 mm
+steps), then what ``assess`` reports with each. ``--lag RAD ...`` repeats the line peaks with each echo's carrier lagging
 by b (1 - cos psi) (a finite scatterer's phase pattern, as the full-wave notch's, docs/accuracy.md;
 b / k is where a map without overlap would put the point); ``--taper P ...`` with each echo's
 amplitude scaled by cos(psi)^P instead (a pattern without phase law). ``--mock`` prints ``assess``'s

@@ -156,7 +156,8 @@ def multipath(args) -> None:
     }
     for fn in timings.values():
         fn()  # warm: tables, memo of the baseline's direct arrival
-    print(f"\nall-paths imaging (mock node, reflecting ends, +1 degC, {'groups added in power' if args.power_sum else 'default AssessSettings'}), one thread, "
+    which = "groups added in power" if args.power_sum else "default AssessSettings"
+    print(f"\nall-paths imaging (mock node, reflecting ends, +1 degC, {which}), one thread, "
           f"numba kernels: {'yes' if gather.compiled() else 'no (numpy fallback)'}")
     print(f"  first map incl. building the gather tables: {cold_ms:8.1f} ms")
     medians = {}
