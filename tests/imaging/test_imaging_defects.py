@@ -7,6 +7,7 @@ import pytest
 
 from imaging import multidefect
 from imaging.echofit import burst_pair, fit_smooth_echoes
+from imaging.localize import Estimate
 from imaging.multipath import path_model_for
 from imaging.paths import scalar_paths
 from imaging.pipeline import AssessSettings, assess
@@ -205,6 +206,24 @@ def test_a_change_at_a_ring_is_reported_when_nothing_located_is_found(n_transduc
     assert result.defects[0].axial_mm < 2.0
 
 
+def _directional_echo(scene: Scene, shape: tuple[int, int], z: float, angle: float) -> np.ndarray:
+    """A scatterer's echoes along the scene's paths, scaled on every path by 1 + 0.8 cos(bearing)."""
+    burst, _ = burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles)
+    echo = np.zeros(shape)
+    for m, rx in enumerate(scene.rx_angles_deg):
+        gain = 1.0 + 0.8 * math.cos(math.radians(angle - rx))
+        for _group, length, w in scalar_paths(scene.model, z, angle - rx):
+            start = math.floor((length / (scene.velocity_m_s * 1e3) - scene.t0_s) * scene.fs_hz + 0.5)
+            lo, hi = max(start, 0), min(start + burst.size, shape[1])
+            if hi > lo:
+                echo[m, lo:hi] += gain * w * burst[lo - start:hi - start]
+    return echo
+
+
+def _found(z: float, angle: float, di: float) -> multidefect.Found:
+    return multidefect.Found(Estimate(z, angle, di), None, 0.0)  # type: ignore[arg-type]  # no map needed
+
+
 def test_a_directional_echo_is_removed_by_a_first_order_pattern_and_not_by_one_amplitude():
     # One scatterer whose echo on every path is scaled by 1 + 0.8 cos(bearing) on top of the
     # path's expected amplitude: the fit with orders=1 removes it to rounding; the map's own
@@ -212,20 +231,30 @@ def test_a_directional_echo_is_removed_by_a_first_order_pattern_and_not_by_one_a
     base, _ = baseline_and_scatterers([], n_samples=3000)
     scene = Scene.of(base, path_model_for(base))
     z, angle = 200.0, 100.0
-    burst, _ = burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles)
-    echo = np.zeros(base.traces.shape)
-    for m, rx in enumerate(scene.rx_angles_deg):
-        gain = 1.0 + 0.8 * math.cos(math.radians(angle - rx))
-        for _group, length, w in scalar_paths(scene.model, z, angle - rx):
-            start = math.floor((length / (scene.velocity_m_s * 1e3) - scene.t0_s) * scene.fs_hz + 0.5)
-            lo, hi = max(start, 0), min(start + burst.size, echo.shape[1])
-            if hi > lo:
-                echo[m, lo:hi] += gain * w * burst[lo - start:hi - start]
+    echo = _directional_echo(scene, base.traces.shape, z, angle)
     energy = float(np.sum(echo**2))
     left_1 = echo - sum(fit_smooth_echoes(echo, scene, [(z, angle)], orders=1))
     left_0 = echo - sum(fit_smooth_echoes(echo, scene, [(z, angle)], orders=0))
     assert float(np.sum(left_1**2)) < 1e-20 * energy
     assert float(np.sum(left_0**2)) > 0.1 * energy
+
+
+def test_every_reported_defect_must_explain_more_than_the_others_patterns_once_all_are_found():
+    # The search judges a later peak only against the defects found before it; the first, the
+    # strongest maximum, was never judged. A point elsewhere that one directional scatterer's
+    # echoes (first-order pattern) explain better is dropped, even when it imaged higher; two
+    # scatterers are each kept.
+    base, _ = baseline_and_scatterers([], n_samples=3000)
+    scene = Scene.of(base, path_model_for(base))
+    echo = _directional_echo(scene, base.traces.shape, 200.0, 100.0)
+    true, leftover = _found(200.0, 100.0, 0.05), _found(320.0, 280.0, 0.08)
+    kept = multidefect._confirmed(multidefect._Search(echo, scene), [leftover, true], [])
+    assert [f.estimate for f in kept] == [true.estimate]
+    two = [(120.0, 60.0, 0.05), (290.0, 230.0, 0.04)]
+    base, cur = baseline_and_scatterers(two, n_samples=3000)
+    residual = base.traces.astype(np.float64) - cur.traces.astype(np.float64)
+    both = [_found(z, a, 0.05) for z, a, _ in two]
+    assert len(multidefect._confirmed(multidefect._Search(residual, Scene.of(base, path_model_for(base))), both, [])) == 2
 
 
 def test_a_faint_later_peak_must_beat_a_second_order_pattern_of_the_found_defects_echoes(monkeypatch):
