@@ -16,7 +16,11 @@ is then to the map's peak, shown in brackets). A reported defect farther than MA
 every true one is a false alarm.
 
     .venv/bin/python bench/bench_fullwave.py [--dev DIR] [--own DIR | --own-cache DIR] [--cases PATTERN ...] [--no-thermometer]
-                                             [--own-16-wall-mm MM]
+                                             [--own-16-wall-mm MM] [--held-out DIR]
+
+``--held-out DIR`` also scores a set in the dev set's layout that neither holds, as ``python -m
+fullwave generate --held-out SEED COUNT --out DIR`` draws it (fullwave/heldout.py), in a table of
+its own (not in the dev + own totals).
 
 ``--own-16-wall-mm 4`` images the own 16-transducer records (whose files, like a node's, carry no
 wall thickness) as a node configured with that wall, as docs/gateway.md asks for a 16-ring node
@@ -227,6 +231,15 @@ def table(rows: list[Scored], title: str) -> list[str]:
     return out
 
 
+def case_lines(rows: list[Scored]) -> list[str]:
+    """Markdown lines: one row per case (for a set nobody has looked at yet)."""
+    out = ["| case | error per true defect (mm) | reported beside them | flagged | peak DI |", "|---|---|---|---|---|"]
+    for r in rows:
+        errors = ", ".join(f"{e:.1f}" if d else f"missed ({e:.0f})" for e, d in zip(r.errors, r.detected, strict=True))
+        out.append(f"| {r.name} | {errors or '-'} | {r.false_alarms} | {sum(r.unlocalized)} | {r.peak_di:.4f} |")
+    return out + [""]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--dev", type=Path, default=DEFAULT_DEV, help=f"dev set (default {DEFAULT_DEV})")
@@ -239,7 +252,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="leave the stretch to the search even on strong changes (AssessSettings.thermometer)")
     parser.add_argument("--own-16-wall-mm", type=float, default=None, metavar="MM",
                         help="image the own 16-transducer records as a node configured with this wall thickness")
+    parser.add_argument("--held-out", type=Path, default=None, metavar="DIR",
+                        help="also score this set (dev layout, e.g. python -m fullwave generate --held-out ...)")
     args = parser.parse_args(argv)
+    if args.held_out is not None and not (args.held_out / "manifest.json").is_file():
+        print(f"bench_fullwave: no manifest.json in {args.held_out}", file=sys.stderr)
+        return 2
     if not (args.dev / "manifest.json").is_file():
         print(f"bench_fullwave: the full-wave dev set is absent ({args.dev}/manifest.json): nothing scored",
               file=sys.stderr)
@@ -263,7 +281,11 @@ def main(argv: list[str] | None = None) -> int:
         lines += table(own, f"Own full-wave cases ({len(own)} cases)")
     if dev and own:
         lines += table(dev + own, f"Dev + own ({len(dev) + len(own)} cases)")
-    if not (dev or own):
+    held_out = ([score("held-out", e, b, c, thermometer) for e, b, c in dev_cases(args.held_out) if wanted(e)]
+                if args.held_out is not None else [])
+    if held_out:
+        lines += table(held_out, f"Held-out ({args.held_out.name}, {len(held_out)} cases)") + case_lines(held_out)
+    if not (dev or own or held_out):
         lines.append(f"bench_fullwave: no case matches {' '.join(args.cases or [])}")
     print("\n".join(lines))
     if missing:

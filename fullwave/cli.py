@@ -2,7 +2,8 @@
 
 Writes ``<case>_baseline.npz`` / ``<case>_current.npz`` and a ``manifest.json`` in the dev set's
 layout (so one scorer reads both), simulating what the cache (fullwave/cache.py) lacks.
-``list`` prints the case names. Exit codes: 0 done, 2 bad arguments or an unwritable directory
+``--held-out SEED COUNT`` writes a seeded random draw of cases in neither set instead
+(fullwave/heldout.py). ``list`` prints the case names. Exit codes: 0 done, 2 bad arguments or an unwritable directory
 (one line on stderr).
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import TextIO
 
 from fullwave.cache import CacheError, case_pair, code_version
 from fullwave.cases import CASE_CELL_MM, Case, own_cases
+from fullwave.heldout import HeldOutError, held_out_cases
 from fullwave.record import SimulationError
 from imaging.formats import npz_bytes
 
@@ -78,9 +80,12 @@ def main(argv: list[str] | None = None) -> int:
                      help="simulation cache (default: $PIPESENTRY_FULLWAVE_CACHE or out/fullwave-cache)")
     lister = sub.add_parser("list", help="print the case names")
     lister.add_argument("--cases", nargs="+", metavar="PATTERN")
+    for command in (gen, lister):
+        command.add_argument("--held-out", nargs=2, type=int, metavar=("SEED", "COUNT"), default=None,
+                             help="a seeded random draw of COUNT cases in neither set instead of the own cases")
     args = parser.parse_args(argv)
     try:
-        cases = select(own_cases(), args.cases)
+        cases = select(own_cases() if args.held_out is None else held_out_cases(*args.held_out), args.cases)
         if args.command == "list":
             print("\n".join(c.name for c in cases))
             return 0
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise UsageError(f"--cell-mm must be 0.1..5 mm, got {args.cell_mm}")
             cases = [c.with_cell(args.cell_mm) for c in cases]
         generate(args.out, cases, args.cache)
-    except (UsageError, CacheError, SimulationError) as exc:
+    except (UsageError, HeldOutError, CacheError, SimulationError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -15,6 +15,7 @@ from fullwave import cache, record
 from fullwave.acquisition import acquire_pair, direct_arrival_peak
 from fullwave.cases import DECIMATED_FACTOR, own_cases
 from fullwave.defects import Mass, Notch
+from fullwave.heldout import SPAN_MM, HeldOutError, held_out_cases
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging.formats import load_measurement
@@ -120,23 +121,59 @@ def test_an_unwritable_cache_is_a_cache_error(tmp_path):
         cache.cached_simulation(SMALL, blocker / "cache")
 
 
+def test_a_held_out_draw_is_reproducible_and_in_neither_set():
+    names = [c.name for c in held_out_cases(11, 24)]
+    assert names == [c.name for c in held_out_cases(11, 24)]
+    assert [c.name for c in held_out_cases(11, 30)][:24] == names  # a longer draw extends a shorter one
+    assert len(set(names)) == 24 and all(n.startswith("ho11_") for n in names)
+    assert not {c.current for c in held_out_cases(12, 24)} & {c.current for c in held_out_cases(11, 24)}
+    assert not {c.current for c in held_out_cases(11, 24)} & {c.current for c in own_cases()}
+
+
+def test_a_held_out_draw_spans_rings_ends_kinds_and_positions_with_the_records_circumference():
+    cases = held_out_cases(3, 60)
+    entries = [c.manifest_entry() for c in cases]
+    assert all(set(e) >= DEV_SET_KEYS for e in entries)
+    assert {(e["transducers"], e["excitation_hz"]) for e in entries} == {(16, 85e3), (8, 75e3)}
+    assert {e["ends"] for e in entries} == {"reflecting", "absorbing"} and {e["noisy"] for e in entries} == {True, False}
+    defects = [d for c in cases for d in c.defects]
+    assert {type(d) for d in defects} == {Notch, Mass} and all(len(c.defects) <= 1 for c in cases)
+    assert all(SPAN_MM[0] <= d.axial_mm <= SPAN_MM[1] and 0 <= d.angle_deg < 360 for d in defects)
+    free = [e for e in entries if not e["defects"]]
+    assert 0 < len(free) < 20 and all(abs(e["temperature_change_c"]) <= 0.7 for e in free)
+    assert all(e["temperature_change_c"] == 0.0 for e in entries if e["defects"])
+    for case in cases:  # the wave goes round the record's pi x OD, as in the dev set
+        assert case.current.pipe.wave_circumference_mm == pytest.approx(np.pi * case.current.pipe.outer_diameter_mm)
+
+
+@pytest.mark.parametrize("seed, count", [(-1, 3), (1, 0), (1, 501)])
+def test_a_held_out_draw_out_of_range_is_refused(seed, count):
+    with pytest.raises(HeldOutError):
+        held_out_cases(seed, count)
+
+
 def _run_cli(*args, cache_dir):
     env = {**os.environ, "PIPESENTRY_FULLWAVE_CACHE": str(cache_dir)}
     return subprocess.run([sys.executable, "-m", "fullwave", *args], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=240)
 
 
-def _documented_quick_generate() -> list[str]:
-    """The quick ``generate`` command of docs/fullwave.md, as arguments after ``python -m fullwave``."""
+def _documented_line(start: str, option: str = "") -> list[str]:
+    """The first command of docs/fullwave.md that starts with ``start`` and uses ``option``, split."""
     for line in (ROOT / "docs" / "fullwave.md").read_text().splitlines():
-        if line.startswith(".venv/bin/python -m fullwave generate") and "--cell-mm" in line:
-            return shlex.split(line)[3:]
-    raise AssertionError("docs/fullwave.md shows no quick generate command")
+        if line.startswith(start) and option in line:
+            return shlex.split(line)
+    raise AssertionError(f"docs/fullwave.md shows no {start} ... {option} command")
+
+
+def _documented_generate(option: str) -> list[str]:
+    """The ``generate`` command of docs/fullwave.md that uses ``option``, as arguments after ``python -m fullwave``."""
+    return _documented_line(".venv/bin/python -m fullwave generate", option)[3:]
 
 
 @pytest.mark.e2e
 def test_the_documented_quick_generate_writes_pairs_and_a_manifest_in_the_dev_sets_layout(tmp_path):
-    args = _documented_quick_generate()
+    args = _documented_generate("--cell-mm")
     out = tmp_path / "cases"
     args[args.index("--out") + 1] = str(out)
     done = _run_cli(*args, cache_dir=tmp_path / "c")
@@ -152,9 +189,33 @@ def test_the_documented_quick_generate_writes_pairs_and_a_manifest_in_the_dev_se
 
 
 @pytest.mark.e2e
+def test_the_documented_held_out_generate_writes_a_draw_with_its_truth(tmp_path):
+    args = _documented_generate("--held-out")  # its first case only, on a coarse grid
+    seed = int(args[args.index("--held-out") + 1])
+    args[args.index("--held-out") + 2] = "1"
+    out = tmp_path / "held-out"
+    args[args.index("--out") + 1] = str(out)
+    done = _run_cli(*args, "--cell-mm", "2", cache_dir=tmp_path / "c")
+    assert done.returncode == 0, done.stderr
+    (entry,) = json.loads((out / "manifest.json").read_text())["cases"]
+    (case,) = held_out_cases(seed, 1)
+    assert entry["case"] == case.name and entry["defects"] == case.manifest_entry()["defects"] != []
+    current = load_measurement(out / entry["current"])
+    assert current.circumference_mm == pytest.approx(entry["wave_circumference_mm"], abs=1e-3)
+    assert current.n_rx == entry["transducers"]
+    bench = _documented_line(".venv/bin/python bench/bench_fullwave.py")  # scored case by case
+    bench = [str(out) if a.startswith("../fullwave-heldout") else a for a in bench[1:]]
+    scored = subprocess.run([sys.executable, *bench, "--dev", str(out)], cwd=ROOT, capture_output=True, text=True,
+                            timeout=240)
+    assert scored.returncode == 0, scored.stderr
+    assert "### Held-out (held-out, 1 cases)" in scored.stdout and f"| {case.name} | " in scored.stdout
+
+
+@pytest.mark.e2e
 @pytest.mark.parametrize("args", [["generate", "--out", "{tmp}/x", "--cases", "no_such_case"],
                                   ["generate", "--out", "{tmp}/file/x", "--cases", "fw_m8_absorbing_fa_p06"],
-                                  ["generate", "--out", "{tmp}/x", "--cell-mm", "0"]])
+                                  ["generate", "--out", "{tmp}/x", "--cell-mm", "0"],
+                                  ["list", "--held-out", "-1", "3"]])
 def test_generate_refuses_bad_arguments_with_one_line_and_exit_code_2(tmp_path, args):
     (tmp_path / "file").write_text("x")
     done = _run_cli(*[a.format(tmp=tmp_path) for a in args], cache_dir=tmp_path / "c")
