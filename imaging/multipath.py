@@ -210,6 +210,17 @@ def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray, model: PathModel) -> l
     return plan
 
 
+def _add_rolled(total: np.ndarray, part: np.ndarray, shift: int) -> None:
+    """``total += np.roll(part, shift, axis=-1)`` without the rolled copy (a joint map's first Gram sum
+    rolls [G, G, n_axial, n_angle] per receiver: the copies were a third of its time)."""
+    if shift % part.shape[-1] == 0:
+        total += part
+        return
+    shift %= part.shape[-1]
+    total[..., shift:] += part[..., :-shift]
+    total[..., :shift] += part[..., -shift:]
+
+
 @lru_cache(maxsize=32)
 def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
                      t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
@@ -221,7 +232,7 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
         if healthy:
             table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
                                   cycles)
-            total += np.roll(table.weight_sq.reshape(total.shape), roll, axis=2)
+            _add_rolled(total, table.weight_sq.reshape(total.shape), roll)
     inverse = _reciprocal(total)
     total.setflags(write=False)
     inverse.setflags(write=False)
@@ -235,10 +246,13 @@ def gram_inverse(gram: np.ndarray) -> np.ndarray:
 
 
 def _with_ridge(stacked: np.ndarray) -> np.ndarray:
-    """[..., G, G] Grams plus GRAM_RIDGE x each one's largest diagonal term (at least a tiny absolute one)."""
-    diagonal = np.diagonal(stacked, axis1=-2, axis2=-1).real
-    ridge = GRAM_RIDGE * np.maximum(diagonal.max(axis=-1), 1e-300)
-    return stacked + ridge[..., None, None] * np.eye(stacked.shape[-1])
+    """[..., G, G] Grams plus GRAM_RIDGE x each one's largest diagonal term (at least a tiny absolute one):
+    a C-contiguous copy with the ridge added on its diagonal (no [..., G, G] ridge term is built)."""
+    out = np.array(stacked, order="C")
+    diagonal = np.arange(out.shape[-1])
+    ridge = GRAM_RIDGE * np.maximum(out[..., diagonal, diagonal].real.max(axis=-1), 1e-300)
+    out[..., diagonal, diagonal] += ridge[..., None]
+    return out
 
 
 @lru_cache(maxsize=32)
@@ -255,7 +269,7 @@ def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: 
             table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
                                   cycles)
             gram = cross_gram(table.groups, table.idx, table.w, covariance, n_groups, n_samples)
-            total += np.roll(gram.reshape(total.shape), roll, axis=3)
+            _add_rolled(total, gram.reshape(total.shape), roll)
     inverse = gram_inverse(total)
     inverse.setflags(write=False)
     return inverse
