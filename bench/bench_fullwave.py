@@ -16,11 +16,11 @@ is then to the map's peak, shown in brackets). A reported defect farther than MA
 every true one is a false alarm.
 
     .venv/bin/python bench/bench_fullwave.py [--dev DIR] [--own DIR | --own-cache DIR] [--cases PATTERN ...] [--no-thermometer]
-                                             [--own-16-wall-mm MM] [--held-out DIR]
+                                             [--own-16-wall-mm MM] [--held-out DIR ...]
 
-``--held-out DIR`` also scores a set in the dev set's layout that neither holds, as ``python -m
+``--held-out DIR ...`` also scores each set in the dev set's layout that neither holds, as ``python -m
 fullwave generate --held-out SEED COUNT --out DIR`` draws it (fullwave/heldout.py), in a table of
-its own (not in the dev + own totals).
+its own, case by case (not in the dev + own totals; several sets also together).
 
 ``--own-16-wall-mm 4`` images the own 16-transducer records (whose files, like a node's, carry no
 wall thickness) as a node configured with that wall, as docs/gateway.md asks for a 16-ring node
@@ -252,12 +252,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="leave the stretch to the search even on strong changes (AssessSettings.thermometer)")
     parser.add_argument("--own-16-wall-mm", type=float, default=None, metavar="MM",
                         help="image the own 16-transducer records as a node configured with this wall thickness")
-    parser.add_argument("--held-out", type=Path, default=None, metavar="DIR",
-                        help="also score this set (dev layout, e.g. python -m fullwave generate --held-out ...)")
+    parser.add_argument("--held-out", type=Path, nargs="+", default=[], metavar="DIR",
+                        help="also score these sets (dev layout, e.g. python -m fullwave generate --held-out ...)")
     args = parser.parse_args(argv)
-    if args.held_out is not None and not (args.held_out / "manifest.json").is_file():
-        print(f"bench_fullwave: no manifest.json in {args.held_out}", file=sys.stderr)
-        return 2
+    for held_out_dir in args.held_out:
+        if not (held_out_dir / "manifest.json").is_file():
+            print(f"bench_fullwave: no manifest.json in {held_out_dir}", file=sys.stderr)
+            return 2
     if not (args.dev / "manifest.json").is_file():
         print(f"bench_fullwave: the full-wave dev set is absent ({args.dev}/manifest.json): nothing scored",
               file=sys.stderr)
@@ -281,10 +282,14 @@ def main(argv: list[str] | None = None) -> int:
         lines += table(own, f"Own full-wave cases ({len(own)} cases)")
     if dev and own:
         lines += table(dev + own, f"Dev + own ({len(dev) + len(own)} cases)")
-    held_out = ([score("held-out", e, b, c, thermometer) for e, b, c in dev_cases(args.held_out) if wanted(e)]
-                if args.held_out is not None else [])
-    if held_out:
-        lines += table(held_out, f"Held-out ({args.held_out.name}, {len(held_out)} cases)") + case_lines(held_out)
+    held_out: list[Scored] = []
+    for held_out_dir in args.held_out:
+        rows = [score("held-out", e, b, c, thermometer) for e, b, c in dev_cases(held_out_dir) if wanted(e)]
+        if rows:
+            lines += table(rows, f"Held-out ({held_out_dir.name}, {len(rows)} cases)") + case_lines(rows)
+        held_out += rows
+    if len(args.held_out) > 1 and held_out:
+        lines += table(held_out, f"Held-out, all ({len(held_out)} cases)")
     if not (dev or own or held_out):
         lines.append(f"bench_fullwave: no case matches {' '.join(args.cases or [])}")
     print("\n".join(lines))
