@@ -500,7 +500,7 @@ def _confirmed(search: _Search, found: list[Found], rings: list[Found]) -> list[
     peak only against the defects found before it, so the first, the strongest maximum, is never
     judged: on a sparse ring with end echoes a scatterer's leftover can image higher than the
     scatterer (8 transducers, 75 kHz, a 1 kg mass on 20 mm at 92 mm 142 deg on the own engine: a
-    maximum at 357 mm 316 deg, DI 0.99 against the mass's 0.82, that the mass with a first-order
+    maximum at 349 mm 316 deg, DI 0.99 against the mass's 0.82, that the mass with a first-order
     pattern explains better, ratio 0.77). The worst-explained defect is dropped while it fails,
     then the rest are judged again without it; ``rings``' echoes (maxima at a ring) stay fitted."""
     kept = list(found)
