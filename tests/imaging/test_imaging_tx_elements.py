@@ -9,12 +9,13 @@ import pytest
 from fullwave.defects import Mass
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
-from imaging import gather
+from imaging import gather, multidefect
 from imaging.analysis import analyze
 from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, hann_burst, reference_amplitude
 from imaging.echofit import fit_echoes, fit_smooth_echoes, group_waves
 from imaging.features import residual_feature
 from imaging.grid import Grid
+from imaging.localize import Estimate
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
 from imaging.paths import PathModel, incident_terms, ring_order_cutoff_hz, sparse_ring
 from imaging.pipeline import default_grid
@@ -156,6 +157,24 @@ def test_the_echo_fit_of_an_element_model_recovers_echoes_made_by_the_same_model
     assert float(np.sum((record - fitted[0]) ** 2)) < 1e-12 * float(np.sum(record**2))
     elsewhere = fit_smooth_echoes(record, scene, [(300.0, 230.0)])[0]
     assert float(np.sum((record - elsewhere) ** 2)) > 0.5 * float(np.sum(record**2))  # the wrong place explains little
+
+
+def test_a_sparse_rings_defect_is_turned_to_the_angle_its_echoes_give_within_half_a_pitch():
+    # Echoes of a scatterer at 180 mm 50 deg (one amplitude per path group, as the plain fit models
+    # them); a defect placed at the right distance but 15 deg off, as the map's pull towards a
+    # receiver leaves it, is turned back; one the axial fit did not place (no map_peak) is left alone.
+    scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    waves = group_waves(scene, [(180.0, 50.0)], 5000)[:, 0]
+    record = np.einsum("mgsn,gs->mn", waves, np.random.default_rng(7).standard_normal(waves.shape[1:3]))
+    search = multidefect._Search(record, scene)
+    off = Estimate(180.0, 65.0, 0.1)
+    placed = multidefect.Found(off, None, 0.0, map_peak=Estimate(190.0, 65.0, 0.1))  # type: ignore[arg-type]
+    turned = multidefect._echo_fit_angle(search, placed, [])
+    assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.estimate.axial_mm == 180.0
+    unplaced = multidefect.Found(off, None, 0.0)  # type: ignore[arg-type]
+    assert multidefect._echo_fit_angle(search, unplaced, []).estimate == off
+    beyond = multidefect.Found(Estimate(180.0, 80.0, 0.1), None, 0.0, map_peak=off)  # type: ignore[arg-type]
+    assert multidefect._echo_fit_angle(search, beyond, []).estimate.angle_deg >= 80.0 - 22.5  # half a pitch at most
 
 
 @pytest.mark.parametrize(("axial_mm", "angle_deg"), [(100.0, 45.0), (200.0, 200.0)])
