@@ -66,6 +66,7 @@ map itself were not tried).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -344,8 +345,7 @@ def find_defects(
         if estimate.di < threshold or (found and estimate.di < MIN_RELATIVE_DI * found[0].estimate.di):
             break
         at_a_ring = _on_the_span_edge(grid, estimate) if not found else _near_a_ring(scene, estimate)
-        faint_ratio = FAINT_RELATIVE_DI_JOINT if scene.joint_groups else FAINT_RELATIVE_DI
-        faint = bool(found) and estimate.di < faint_ratio * found[0].estimate.di
+        faint = bool(found) and _faint(scene, estimate.di, found[0].estimate.di)
         if at_a_ring and faint:
             rejected.append(Found(estimate, di_map, 0.0))  # too weak to bias the defects: not worth its unknowns
             continue
@@ -436,8 +436,11 @@ def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
 
 
 def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
-    """A sparse ring's defect placed by its echoes: along its line, then round the pipe."""
-    return _echo_fit_angle(search, _echo_fit_axial(search, item, others), others)
+    """A sparse ring's defect placed by its echoes: along its line, then round the pipe. The
+    ``others``' echoes are fitted and removed once, when first needed (not for a defect the map
+    does not localize, which keeps its position)."""
+    alone = functools.cache(lambda: _without(search, others))
+    return _echo_fit_angle(_echo_fit_axial(search.scene, item, alone), alone)
 
 
 def _without(search: _Search, others: list[Found]) -> _Search:
@@ -445,12 +448,12 @@ def _without(search: _Search, others: list[Found]) -> _Search:
     return _Search(search.original - sum(search.fits(others), np.zeros_like(search.original)), search.scene)
 
 
-def _echo_fit_axial(search: _Search, item: Found, others: list[Found]) -> Found:
+def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> Found:
     """A sparse ring's defect placed along its line (the map's angle) where its echoes are best
     explained: the axial position, within the map's own stated 90 % region round its peak
     (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the six-leg fit with a
-    first-order directional pattern (PATTERN_ORDERS) leaves of the record once the ``others``'
-    echoes are removed. Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
+    first-order directional pattern (PATTERN_ORDERS) leaves of the record with the other defects'
+    echoes removed (``alone``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
     the parabola through the best three, kept inside the region. Where the map does not localize
     the defect at all its position is kept (there the fit was measured to wander: an 8-ring light
     mass with a searched stretch, 13 -> 40 mm). The DI, severity, runner-up and confidence stay
@@ -461,7 +464,7 @@ def _echo_fit_axial(search: _Search, item: Found, others: list[Found]) -> Found:
     full-wave free-end mass 26-30 mm off); the echoes themselves, round the pipe six times, place it
     within 3-6 mm. Measured on 16-ring records it was mixed (dev absorbing notches closer, own ones
     further), so it runs only for sparse rings (docs/imaging.md)."""
-    estimate, scene = item.estimate, search.scene
+    estimate = item.estimate
     region = localization_region(peak_confidence(item.di_map, estimate, circumference_mm=scene.circumference_mm,
                                                  runner_up_di=item.runner_up_di),
                                  circumference_mm=scene.circumference_mm, axial_span_mm=scene.model.tx_rx_distance_mm)
@@ -473,14 +476,13 @@ def _echo_fit_axial(search: _Search, item: Found, others: list[Found]) -> Found:
     if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
         return item
     step = (hi - lo) / max(2, round((hi - lo) / ECHO_FIT_STEP_MM))
-    alone = _without(search, others)
-    rest = alone.original
+    rest = alone()
     left: dict[float, float] = {}
 
     def unexplained(z: float) -> float:
         if z not in left:
             at = Found(dataclasses.replace(estimate, axial_mm=z), item.di_map, item.severity)
-            leftover = rest - sum(alone.fits([at], orders=PATTERN_ORDERS))
+            leftover = rest.original - sum(rest.fits([at], orders=PATTERN_ORDERS))
             left[z] = float(np.sum(leftover * leftover))
         return left[z]
 
@@ -496,11 +498,11 @@ def _echo_fit_axial(search: _Search, item: Found, others: list[Found]) -> Found:
     return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate)
 
 
-def _echo_fit_angle(search: _Search, item: Found, others: list[Found]) -> Found:
+def _echo_fit_angle(item: Found, alone: Callable[[], _Search]) -> Found:
     """A sparse ring's defect that ``_echo_fit_axial`` placed, turned round the pipe to where its
     echoes are best explained: the angle, within half a receiver pitch of the map's, that minimises
-    what the six-leg *plain* fit (one amplitude per path, no directional pattern) leaves once the
-    ``others``' echoes are removed; steps of ECHO_FIT_ANGLE_STEP_DEG, then the parabola through the
+    what the six-leg *plain* fit (one amplitude per path, no directional pattern) leaves of the
+    record with the other defects' echoes removed (``alone``); steps of ECHO_FIT_ANGLE_STEP_DEG, then the parabola through the
     best three. A defect the axial fit left alone (not localized) keeps the map's angle.
 
     The map's angle leans towards a receiver's: on an 8-ring at 75 kHz without end echoes a notch
@@ -510,18 +512,17 @@ def _echo_fit_angle(search: _Search, item: Found, others: list[Found]) -> Found:
     against 0.55 at the map's angle)."""
     if item.map_peak is None:
         return item
-    estimate = item.estimate
-    alone = _without(search, others)
+    estimate, rest = item.estimate, alone()
     left: dict[float, float] = {}
 
     def unexplained(angle: float) -> float:
         if angle not in left:
             at = Found(dataclasses.replace(estimate, angle_deg=angle % 360.0), item.di_map, item.severity)
-            leftover = alone.original - sum(alone.fits([at]))
+            leftover = rest.original - sum(rest.fits([at]))
             left[angle] = float(np.sum(leftover * leftover))
         return left[angle]
 
-    steps = round(180.0 / search.scene.n_rx / ECHO_FIT_ANGLE_STEP_DEG)
+    steps = round(180.0 / rest.scene.n_rx / ECHO_FIT_ANGLE_STEP_DEG)
     angles = [estimate.angle_deg + k * ECHO_FIT_ANGLE_STEP_DEG for k in range(-steps, steps + 1)]
     k = int(np.argmin([unexplained(a) for a in angles]))
     angle = angles[k]
@@ -531,14 +532,19 @@ def _echo_fit_angle(search: _Search, item: Found, others: list[Found]) -> Found:
     return dataclasses.replace(item, estimate=dataclasses.replace(estimate, angle_deg=angle % 360.0))
 
 
+def _faint(scene: Scene, di: float, strongest_di: float) -> bool:
+    """Is a peak of ``di`` faint beside a defect of ``strongest_di`` (FAINT_RELATIVE_DI, or
+    FAINT_RELATIVE_DI_JOINT on a map projecting its groups jointly)?"""
+    return di < (FAINT_RELATIVE_DI_JOINT if scene.joint_groups else FAINT_RELATIVE_DI) * strongest_di
+
+
 def _pattern_ratio(search: _Search, item: Found, others: list[Found]) -> float:
     """What the ``others``' echoes with a directional pattern leave of the record, over what a
     scatterer at ``item`` fitted with them leaves (``_Search.beats_patterns``'s comparison as a
     ratio: above PATTERN_MARGIN, ``item`` is a scatterer of its own). A faint item (below the
     faint fraction of the strongest other) faces the second-order pattern, as in the search."""
     strongest = max((f.estimate.di for f in others), default=0.0)
-    faint_ratio = FAINT_RELATIVE_DI_JOINT if search.scene.joint_groups else FAINT_RELATIVE_DI
-    orders = FAINT_PATTERN_ORDERS if item.estimate.di < faint_ratio * strongest else PATTERN_ORDERS
+    orders = FAINT_PATTERN_ORDERS if _faint(search.scene, item.estimate.di, strongest) else PATTERN_ORDERS
     return search.pattern_ratio(others, search.fits(others + [item]), orders)
 
 

@@ -169,12 +169,12 @@ def test_a_sparse_rings_defect_is_turned_to_the_angle_its_echoes_give_within_hal
     search = multidefect._Search(record, scene)
     off = Estimate(180.0, 65.0, 0.1)
     placed = multidefect.Found(off, None, 0.0, map_peak=Estimate(190.0, 65.0, 0.1))  # type: ignore[arg-type]
-    turned = multidefect._echo_fit_angle(search, placed, [])
+    turned = multidefect._echo_fit_angle(placed, lambda: search)
     assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.estimate.axial_mm == 180.0
     unplaced = multidefect.Found(off, None, 0.0)  # type: ignore[arg-type]
-    assert multidefect._echo_fit_angle(search, unplaced, []).estimate == off
+    assert multidefect._echo_fit_angle(unplaced, lambda: search).estimate == off
     beyond = multidefect.Found(Estimate(180.0, 80.0, 0.1), None, 0.0, map_peak=off)  # type: ignore[arg-type]
-    assert multidefect._echo_fit_angle(search, beyond, []).estimate.angle_deg >= 80.0 - 22.5  # half a pitch at most
+    assert multidefect._echo_fit_angle(beyond, lambda: search).estimate.angle_deg >= 80.0 - 22.5  # half a pitch at most
 
 
 @pytest.mark.parametrize(("axial_mm", "angle_deg"), [(100.0, 45.0), (200.0, 200.0)])
