@@ -105,6 +105,15 @@ class Edge:
         finally:
             database.dispose()
 
+    def baseline_events(self) -> set[str]:
+        """The nodes with a baseline_changed event in this edge's outbox."""
+        database = open_database(self.db_url, upgrade=False)
+        try:
+            with database.session() as session:
+                return set(session.scalars(select(EventRow.node_id).where(EventRow.kind == "baseline_changed")))
+        finally:
+            database.dispose()
+
     def scrape(self, path: str) -> httpx.Response:
         assert self.gateway is not None
         port = gateway_metrics_port(self.gateway)
@@ -251,6 +260,12 @@ def test_the_centre_ends_with_exactly_the_edges_records_whatever_the_link_did(tm
         south.proxy.set_mode("pass")
         wait_until(lambda: _sample(north.scrape("/metrics").text, "pipesentry_gateway_uplink_duplicates_total") >= 1,
                    PHASE_TIMEOUT_S, 0.3, what="the restarted gateway re-sending what the centre already stored")
+
+        # The edges' watchers raise baseline_changed up to 30 s after the baseline (offline_after_s / 10):
+        # every node's is in its edge's outbox before the queues are drained, or it could come after.
+        for edge in edges:
+            wait_until(lambda e=edge: e.baseline_events() == set(e.nodes), PHASE_TIMEOUT_S, 0.5,
+                       what=f"{edge.name}'s baseline_changed events")
 
         # The nodes go quiet; every queue drains; the gateways stop.
         for edge in edges:
