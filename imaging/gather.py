@@ -23,7 +23,9 @@ imaging/paths.py): sum over pairs of paths in the group of w_a w_b r(|k_a - k_b|
 noise correlation (imaging/arrivals.py ``analytic_noise_correlation``); paths outside the record
 (k = n) count nothing. Compiled with numba, numpy fallback; tests hold them equal.
 
-5. ``joint_power``: per pixel b^H M^-1 b, b the groups' sums and M^-1 the inverse cross-Gram (4).
+5. ``joint_power``: per pixel b^H M^-1 b, b the groups' sums and M^-1 the inverse cross-Gram (4),
+held as its Hermitian part's upper triangle (``pack_hermitian``: half the numbers), block by block of
+pixels in real arithmetic the compiler vectorises.
 
 4. ``cross_gram``: the same across groups, complex — the groups' cross-Gram of one receiver,
 sum over pairs (a, b) of paths of w_a w_b C(k_b - k_a) into (group of a, group of b), C the
@@ -284,24 +286,68 @@ def cross_gram(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, covariance: n
     return out
 
 
-def joint_power_numpy(sums: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-    """[n_pixels]: Re sum_gh conj(b_g) M^-1_gh b_h per pixel, ``sums`` b [G, n_pixels], ``inverse`` [G, G, n_pixels]."""
-    return np.einsum("gx,ghx,hx->x", sums.conj(), inverse, sums).real
+PACK_CHUNK = 4096  # pixels packed at a time (bounds pack_hermitian's temporaries)
+PIXEL_BLOCK = 512  # joint_power's pixels at a time (a block's sums and sums so far stay in cache)
 
 
-def _joint_power_loops(sums, inverse, out):  # pragma: no cover - numba
+def pack_hermitian(matrices: np.ndarray) -> np.ndarray:
+    """Per-pixel Hermitian forms [..., G, G] (as ``np.linalg.inv`` returns them) -> the layout
+    ``joint_power`` reads: [2, G (G + 1) / 2, n_pixels] float64, the real and imaginary parts of the
+    upper triangle of each matrix's Hermitian part, row by row (numpy's ``triu_indices`` order), the
+    terms above the diagonal doubled. Re b^H M b = b^H ((M + M^H) / 2) b = sum over the triangle of
+    Re(conj(b_g) M_gh b_h) x (1 on the diagonal, 2 above it): nothing the power uses is lost, half the
+    numbers are read, and each run along the pixels is one the compiler vectorises."""
+    n_groups = matrices.shape[-1]
+    flat = matrices.reshape(-1, n_groups * n_groups)
+    rows, cols = np.triu_indices(n_groups)
+    upper, lower = rows * n_groups + cols, cols * n_groups + rows
+    factor = np.where(rows == cols, 0.5, 1.0)  # (M + M^H) / 2, doubled above the diagonal
+    out = np.empty((2, rows.size, flat.shape[0]))
+    for start in range(0, flat.shape[0], PACK_CHUNK):
+        chunk = flat[start:start + PACK_CHUNK]
+        part = ((chunk[:, upper] + np.conj(chunk[:, lower])) * factor).T
+        out[0, :, start:start + PACK_CHUNK] = part.real
+        out[1, :, start:start + PACK_CHUNK] = part.imag
+    return out
+
+
+def joint_power_numpy(sums: np.ndarray, packed: np.ndarray) -> np.ndarray:
+    """[n_pixels]: Re sum_gh conj(b_g) M_gh b_h per pixel, ``sums`` b [G, n_pixels], ``packed`` M as
+    ``pack_hermitian`` holds it."""
+    rows, cols = np.triu_indices(sums.shape[0])
+    b = sums.astype(np.complex128)
+    return np.sum((np.conj(b[rows]) * (packed[0] + 1j * packed[1]) * b[cols]).real, axis=0)
+
+
+def _joint_power_loops(sums, packed, out):  # pragma: no cover - numba
     n_groups, n_pix = sums.shape
-    acc = np.empty(n_pix, dtype=np.complex128)
-    for x in range(n_pix):
-        out[x] = 0.0
-    for g in range(n_groups):
-        for x in range(n_pix):
-            acc[x] = 0j
-        for h in range(n_groups):
-            for x in range(n_pix):
-                acc[x] += inverse[g, h, x] * sums[h, x]
-        for x in range(n_pix):
-            out[x] += (np.conj(sums[g, x]) * acc[x]).real
+    real, imag = packed[0], packed[1]
+    br = np.empty((n_groups, PIXEL_BLOCK))  # a block's sums in double: the form cancels
+    bi = np.empty((n_groups, PIXEL_BLOCK))
+    acc_r = np.empty(PIXEL_BLOCK)
+    acc_i = np.empty(PIXEL_BLOCK)
+    for start in range(0, n_pix, PIXEL_BLOCK):
+        n = min(PIXEL_BLOCK, n_pix - start)
+        for g in range(n_groups):
+            for x in range(n):
+                br[g, x] = sums[g, start + x].real
+                bi[g, x] = sums[g, start + x].imag
+        for x in range(n):
+            out[start + x] = 0.0
+        k = 0
+        for g in range(n_groups):
+            for x in range(n):
+                acc_r[x] = 0.0
+                acc_i[x] = 0.0
+            for h in range(g, n_groups):
+                for x in range(n):
+                    pr = real[k, start + x]
+                    pi = imag[k, start + x]
+                    acc_r[x] += pr * br[h, x] - pi * bi[h, x]
+                    acc_i[x] += pr * bi[h, x] + pi * br[h, x]
+                k += 1
+            for x in range(n):
+                out[start + x] += br[g, x] * acc_r[x] + bi[g, x] * acc_i[x]
 
 
 def _compile_joint_power():
@@ -312,13 +358,17 @@ def _compile_joint_power():
 joint_power_compiled = _compile_joint_power()
 
 
-def joint_power(sums: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-    """``joint_power_numpy``'s result (same pixel layout as ``sums[0]``), by the compiled kernel when available."""
+def joint_power(sums: np.ndarray, packed: np.ndarray) -> np.ndarray:
+    """``joint_power_numpy``'s result (same pixel layout as ``sums[0]``), by the compiled kernel when available.
+
+    ``sums`` [G, ...]; ``packed`` (``pack_hermitian``) for the pixels in ``sums[0]``'s C order. The
+    kernel goes block by block of pixels, each triangle term a run along the block in real arithmetic
+    (vectorised: ~2x faster than the whole complex matrix read pixel run by pixel run, and than the
+    packed triangle read pixel by pixel; bench/bench_imaging.py, docs/benchmarks.md)."""
     shape = sums.shape[1:]
     flat_sums = np.ascontiguousarray(sums.reshape(sums.shape[0], -1))
-    flat_inverse = np.ascontiguousarray(inverse.reshape(inverse.shape[:2] + (-1,)))
     if joint_power_compiled is None:
-        return joint_power_numpy(flat_sums, flat_inverse).reshape(shape)
+        return joint_power_numpy(flat_sums, packed).reshape(shape)
     out = np.empty(flat_sums.shape[1])
-    joint_power_compiled(flat_sums, flat_inverse, out)
+    joint_power_compiled(flat_sums, packed, out)
     return out.reshape(shape)

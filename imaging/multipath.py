@@ -56,7 +56,7 @@ from imaging.arrivals import (
 )
 from imaging.dimap import DIMap, check_compatible
 from imaging.features import residual_feature
-from imaging.gather import accumulate, coherent_energy, cross_gram, joint_power, local_sums_compiled
+from imaging.gather import accumulate, coherent_energy, cross_gram, joint_power, local_sums_compiled, pack_hermitian
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, sparse_ring, stacked_paths
@@ -95,8 +95,8 @@ def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
     """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring).
 
     ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables).
-    ``gram_inverse`` [n_groups, n_groups, ...]: the (ridged) inverse of the groups' cross-Gram; with it
-    a coherent map projects on the groups jointly (b^H M^-1 b) instead of adding their powers."""
+    ``gram_inverse``: the (ridged) inverse of the groups' cross-Gram, packed (``gram_inverse``); with
+    it a coherent map projects on the groups jointly (b^H M^-1 b) instead of adding their powers."""
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
         if gram_inverse is not None:
@@ -240,18 +240,28 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
 
 
 def gram_inverse(gram: np.ndarray) -> np.ndarray:
-    """The inverse of each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, same layout."""
+    """The inverse of each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, packed
+    as ``joint_power`` reads it (``pack_hermitian``: [2, G (G + 1) / 2, n_pixels]).
+
+    ``gram`` itself gets the ridge (callers pass a sum they drop): a 1 mm x 1 deg map's Grams are
+    ~0.75 GB, and inverting them in place of a ridged copy keeps one such array fewer alive."""
     stacked = np.moveaxis(gram, (0, 1), (-2, -1))
-    return np.ascontiguousarray(np.moveaxis(np.linalg.inv(_with_ridge(stacked)), (-2, -1), (0, 1)))
+    _add_ridge(stacked)
+    return pack_hermitian(np.linalg.inv(stacked))
+
+
+def _add_ridge(stacked: np.ndarray) -> None:
+    """Add GRAM_RIDGE x each [..., G, G] Gram's largest diagonal term (at least a tiny absolute one) to
+    its diagonal, in place (no [..., G, G] ridge term is built)."""
+    diagonal = np.arange(stacked.shape[-1])
+    ridge = GRAM_RIDGE * np.maximum(stacked[..., diagonal, diagonal].real.max(axis=-1), 1e-300)
+    stacked[..., diagonal, diagonal] += ridge[..., None]
 
 
 def _with_ridge(stacked: np.ndarray) -> np.ndarray:
-    """[..., G, G] Grams plus GRAM_RIDGE x each one's largest diagonal term (at least a tiny absolute one):
-    a C-contiguous copy with the ridge added on its diagonal (no [..., G, G] ridge term is built)."""
+    """A C-contiguous copy of the [..., G, G] Grams with the ridge of ``_add_ridge`` on its diagonal."""
     out = np.array(stacked, order="C")
-    diagonal = np.arange(out.shape[-1])
-    ridge = GRAM_RIDGE * np.maximum(out[..., diagonal, diagonal].real.max(axis=-1), 1e-300)
-    out[..., diagonal, diagonal] += ridge[..., None]
+    _add_ridge(out)
     return out
 
 
@@ -259,8 +269,9 @@ def _with_ridge(stacked: np.ndarray) -> np.ndarray:
 def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
                         t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
                         mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
-    """The inverse of the groups' cross-Gram summed over the healthy receivers [G, G, n_axial, n_angle]
-    (a plane-wave model's: one path per group and receiver). ``burst``: (excitation_hz, cycles) of the feature."""
+    """The inverse of the groups' cross-Gram summed over the healthy receivers, packed for each of the
+    grid's pixels (``gram_inverse``; a plane-wave model's: one path per group and receiver).
+    ``burst``: (excitation_hz, cycles) of the feature."""
     n_groups = coherence_groups(model)
     covariance = analytic_noise_covariance(fs_hz, *burst)
     total = np.zeros((n_groups, n_groups) + grid.shape, dtype=np.complex128)

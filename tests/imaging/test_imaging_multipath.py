@@ -130,5 +130,9 @@ def test_compiled_cross_gram_and_joint_power_equal_their_numpy_sums():
     np.testing.assert_allclose(per_pixel, np.conj(np.swapaxes(per_pixel, 1, 2)), atol=1e-12)  # Hermitian
     assert np.all(np.linalg.eigvalsh(per_pixel) > -1e-9)  # a covariance: positive semi-definite
     sums = rng.standard_normal((4, 30)) + 1j * rng.standard_normal((4, 30))
-    inverse = np.moveaxis(np.linalg.inv(per_pixel + 1e-3 * np.eye(4)), 0, 2).copy()
-    np.testing.assert_allclose(gather.joint_power(sums, inverse), gather.joint_power_numpy(sums, inverse), rtol=1e-9)
+    inverse = np.linalg.inv(per_pixel + 1e-3 * np.eye(4))  # [pixel, G, G]
+    full = np.einsum("xg,xgh,xh->x", sums.T.conj(), inverse, sums.T).real  # b^H M^-1 b, the whole matrix
+    packed = gather.pack_hermitian(inverse)
+    assert packed.shape == (2, 10, 30)  # 4 x 5 / 2 complex numbers a pixel
+    np.testing.assert_allclose(gather.joint_power(sums, packed), full, rtol=1e-9)
+    np.testing.assert_allclose(gather.joint_power_numpy(sums, packed), full, rtol=1e-9)
