@@ -21,13 +21,14 @@ only for the plane-wave model.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
 from scipy import fft as sp_fft
 
 from imaging.fitkernels import normal_equations, synthesise
-from imaging.paths import coherence_groups, scalar_paths, stacked_paths
+from imaging.paths import coherence_groups, element_scattering_cosines, scalar_paths, stacked_paths
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
@@ -75,12 +76,16 @@ def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.n
     return np.ascontiguousarray(samples.transpose(1, 2, 0))
 
 
-def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int) -> np.ndarray:
+def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
+                lags_rad: Sequence[float] | None = None) -> np.ndarray:
     """Each position's echo along each coherence group, as it reaches each receiver: [n_rx, n_pos, n_groups, 2, n]
     (burst and quadrature twin), the group's paths added with their weights and cut to the record.
 
     For a model whose groups hold several paths (a Tx ring modelled element by element,
     imaging/paths.py): its incident terms arrive close together and share one amplitude.
+    ``lags_rad`` (one per position, default none): each path's carrier lags by lag (1 - cos psi),
+    psi its scattering angle (``element_scattering_cosines``): a scatterer whose forward field lags
+    its backward one, as a notch's does (docs/imaging.md, "A forward lag fitted on sparse rings").
     Built as impulse trains convolved with the two burst shapes (one FFT each).
     """
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
@@ -91,12 +96,26 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int) -> n
     groups, length, weight = stacked_paths(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])  # [P, m, pos]
     k = np.floor((length / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
+    lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
     width = n + size
-    impulses = np.zeros((n_rx, n_pos, n_groups, width))
+    impulses = np.zeros((n_rx, n_pos, n_groups, 2 if lagged else 1, width))
     p_idx, m_idx, pos_idx = np.nonzero(keep)
-    np.add.at(impulses, (m_idx, pos_idx, groups[p_idx], k[keep] + size), weight[keep])
+    at = (m_idx, pos_idx, groups[p_idx], k[keep] + size)
+    if lagged:
+        cos_psi = element_scattering_cosines(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])
+        phase = np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi)  # [P, m, pos]
+        np.add.at(impulses[..., 0, :], at, (weight * np.cos(phase))[keep])
+        np.add.at(impulses[..., 1, :], at, (weight * np.sin(phase))[keep])
+    else:
+        np.add.at(impulses[..., 0, :], at, weight[keep])
     n_fft = sp_fft.next_fast_len(width + size, real=True)
-    spec = sp_fft.rfft(impulses, n_fft, axis=-1)[..., None, :] * sp_fft.rfft(shapes, n_fft, axis=-1)
+    burst, quadrature = sp_fft.rfft(shapes, n_fft, axis=-1)
+    spec = sp_fft.rfft(impulses, n_fft, axis=-1)
+    if lagged:  # sin(x - phi) = sin x cos phi - cos x sin phi; cos(x - phi) = cos x cos phi + sin x sin phi
+        spec = np.stack([spec[..., 0, :] * burst - spec[..., 1, :] * quadrature,
+                         spec[..., 0, :] * quadrature + spec[..., 1, :] * burst], axis=-2)
+    else:
+        spec = spec * np.stack([burst, quadrature])
     return sp_fft.irfft(spec, n_fft, axis=-1)[..., size:size + n]
 
 
@@ -111,11 +130,11 @@ def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: i
 
 
 def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
-                     shared: bool) -> list[np.ndarray]:
+                     shared: bool, lags_rad: Sequence[float] | None = None) -> list[np.ndarray]:
     """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
-    path, on ``group_waves``: the fit for a model with Tx elements."""
+    path, on ``group_waves`` (``lags_rad``: its forward lags): the fit for a model with Tx elements."""
     n_rx, n = residual.shape
-    waves = group_waves(scene, positions, n)  # [m, pos, g, 2, n]
+    waves = group_waves(scene, positions, n, lags_rad)  # [m, pos, g, 2, n]
     n_pos = len(positions)
     columns = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
     gram = np.einsum("man,mbn->mab", columns, columns, optimize=True)
@@ -206,7 +225,7 @@ SMOOTH_ORDERS = 0  # Fourier orders of a path's amplitude over the receivers' be
 
 
 def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],
-                      orders: int = SMOOTH_ORDERS) -> list[np.ndarray]:
+                      orders: int = SMOOTH_ORDERS, lags_rad: Sequence[float] | None = None) -> list[np.ndarray]:
     """Like ``fit_echoes``, but each path's amplitude is shared by the receivers (the map's own model).
 
     The coherent map (imaging/multipath.py) scores a point scatterer with one complex amplitude
@@ -222,13 +241,17 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     amplitude for every path: on a 16-receiver ring that also absorbs another defect's echoes
     wherever they overlap one of this defect's many paths, so the weaker of two defects vanished
     with the stronger one's fit (full-wave dev set: a second notch of DI 0.15 left at 0.03).
+    ``lags_rad``: each position's forward lag (``group_waves``); a model with Tx elements only.
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
     if not positions:
         return []
     if scene.model.elements:
-        return _fit_group_waves(residual, scene, positions, orders, shared=True)
+        return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad)
+    if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
+        raise ValueError("a forward lag is fitted only for a model with Tx elements (a plane wave trades it "
+                         "against the axial position)")
     shapes, table = _partial_products(scene.fs_hz, scene.excitation_hz, scene.cycles)
     size = shapes.shape[1]
     n_pos = len(positions)

@@ -109,6 +109,11 @@ FAINT_RELATIVE_DI_JOINT = 0.35  # ... on a map projecting its groups jointly (a 
 FAINT_PATTERN_ORDERS = 2  # ... up to this order for a faint one (below FAINT_RELATIVE_DI of the first)
 ECHO_FIT_SPAN_MM = 40.0  # a sparse ring's defect is placed by its echo fit at most this far from the map's peak
 ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is ~20-30 mm wide)
+# ... each with its echoes lagging by b (1 - cos psi), psi the scattering angle, for b in these (rad), the
+# best (position, b) kept: a notch's forward field lags. Only b = 0 by default: with (0, 1, 2, 3) most held-out
+# 8-ring notches came closer but two notches and a near-rigid mass went further (docs/imaging.md, "A forward
+# lag fitted on sparse rings: measured, not yet the default").
+FORWARD_LAGS_RAD: tuple[float, ...] = (0.0,)
 ECHO_FIT_ANGLE_STEP_DEG = 2.5  # ... then turned round the pipe within half a receiver pitch, at this step
 PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
 #                    (1.2 removes most spurious defects but loses weak second notches: docs/imaging.md)
@@ -127,6 +132,7 @@ class Found:
     severity: float
     runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
     map_peak: Estimate | None = None  # the map's peak, when the position comes from the echo fit instead
+    forward_lag_rad: float = 0.0  # its echoes' forward lag b (1 - cos psi), fitted with its position (sparse rings)
 
     @property
     def peak(self) -> Estimate:
@@ -238,10 +244,12 @@ class _Search:
         """Every found defect's echoes, fitted jointly, put through the scene's filter. ``shared``: each
         path's amplitude shared by all receivers, a circular harmonic of their bearing up to ``orders``
         (``fit_smooth_echoes``), else one per path and receiver (``fit_echoes``); each path followed
-        along ``wraps`` legs round the pipe (imaging/paths.py ``wrap_turns``; default FIT_WRAPS)."""
+        along ``wraps`` legs round the pipe (imaging/paths.py ``wrap_turns``; default FIT_WRAPS); each
+        defect's echoes with its ``forward_lag_rad`` (shared fits)."""
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
         scene = dataclasses.replace(self.scene, model=dataclasses.replace(self.scene.model, wraps=wraps or FIT_WRAPS))
-        fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders) if shared
+        lags = [f.forward_lag_rad for f in found]
+        fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders, lags_rad=lags) if shared
                 else fit_echoes(self.original, scene, positions))
         project = self.scene.project
         return fits if project is None else [project(f) for f in fits]
@@ -477,25 +485,26 @@ def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> 
         return item
     step = (hi - lo) / max(2, round((hi - lo) / ECHO_FIT_STEP_MM))
     rest = alone()
-    left: dict[float, float] = {}
+    left: dict[tuple[float, float], float] = {}
 
-    def unexplained(z: float) -> float:
-        if z not in left:
-            at = Found(dataclasses.replace(estimate, axial_mm=z), item.di_map, item.severity)
+    def unexplained(z: float, lag: float) -> float:
+        if (z, lag) not in left:
+            at = Found(dataclasses.replace(estimate, axial_mm=z), item.di_map, item.severity, forward_lag_rad=lag)
             leftover = rest.original - sum(rest.fits([at], orders=PATTERN_ORDERS))
-            left[z] = float(np.sum(leftover * leftover))
-        return left[z]
+            left[z, lag] = float(np.sum(leftover * leftover))
+        return left[z, lag]
 
     coarse = np.linspace(lo, hi, 1 + round((hi - lo) / step))
-    best = float(coarse[int(np.argmin([unexplained(float(z)) for z in coarse]))])
+    best, lag = min(((float(z), b) for b in FORWARD_LAGS_RAD for z in coarse), key=lambda zb: unexplained(*zb))
     half = (coarse[1] - coarse[0]) / 2
     z0, z1, z2 = best - half, best, best + half
-    z_best = min((z0, z1, z2), key=unexplained)
+    z_best = min((z0, z1, z2), key=lambda z: unexplained(z, lag))
     if z_best != z1:  # the half step moved the best: centre the parabola on it
         z0, z1, z2 = z_best - half, z_best, z_best + half
-    offset = parabolic_offset(-unexplained(z0), -unexplained(z1), -unexplained(z2))  # the minimum's vertex
+    offset = parabolic_offset(-unexplained(z0, lag), -unexplained(z1, lag), -unexplained(z2, lag))  # the vertex
     axial = float(np.clip(z1 + half * offset, lo, hi))
-    return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate)
+    return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate,
+                               forward_lag_rad=lag)
 
 
 def _echo_fit_angle(item: Found, alone: Callable[[], _Search]) -> Found:

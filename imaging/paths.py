@@ -144,17 +144,51 @@ def _element_incident(model: PathModel, zeta: np.ndarray, pixel_arc_mm: np.ndarr
     then image -tx_images..tx_images) at pixels ``zeta`` mm along the axis from the (imaged) ring, at ``pixel_arc_mm``
     round the pipe from angle 0."""
     circ = model.circumference_mm
-    images = np.arange(-model.tx_images, model.tx_images + 1) * circ
-    tx = np.repeat(np.asarray(model.tx_arcs_mm, dtype=np.float64), images.size)
-    shift = np.tile(images, len(model.tx_arcs_mm))
     zeta = np.asarray(zeta, dtype=np.float64)
-    extra = (1,) * len(np.broadcast_shapes(zeta.shape, np.shape(pixel_arc_mm)))
-    base = signed_arc_mm((np.asarray(pixel_arc_mm, dtype=np.float64)[None] - tx.reshape((-1,) + extra))
-                         * (360.0 / circ), circ)
-    s = base + shift.reshape((-1,) + extra)
+    s = _element_arcs(model, pixel_arc_mm, len(np.broadcast_shapes(zeta.shape, np.shape(pixel_arc_mm))))
     r = np.sqrt(np.square(zeta)[None] + np.square(s))
     w = path_weight(circ / len(model.tx_arcs_mm) / model.wavelength_mm, zeta[None], r, model)
     return r, np.where(w < NEGLIGIBLE_WEIGHT, 0.0, w)
+
+
+def _element_arcs(model: PathModel, pixel_arc_mm: np.ndarray, ndim: int) -> np.ndarray:
+    """[E, ...]: the signed arc (mm) from every Tx element image to pixels ``pixel_arc_mm`` round the pipe
+    (``ndim`` the pixels' broadcast dimensions)."""
+    circ = model.circumference_mm
+    images = np.arange(-model.tx_images, model.tx_images + 1) * circ
+    tx = np.repeat(np.asarray(model.tx_arcs_mm, dtype=np.float64), images.size)
+    shift = np.tile(images, len(model.tx_arcs_mm))
+    extra = (1,) * ndim
+    base = signed_arc_mm((np.asarray(pixel_arc_mm, dtype=np.float64)[None] - tx.reshape((-1,) + extra))
+                         * (360.0 / circ), circ)
+    return base + shift.reshape((-1,) + extra)
+
+
+def element_scattering_cosines(model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray,
+                               rx_angle_deg: float | np.ndarray = 0.0) -> np.ndarray:
+    """cos psi [P, *broadcast shape] of every path of ``stacked_paths`` (a model with Tx elements, same
+    order): psi the scattering angle at the pixel, between the incident wave's direction there (the
+    gradient of the incident length) and the way out to the receiver (minus the gradient of the
+    outgoing one), on the unrolled wall, end images unfolded."""
+    families = model.families()
+    shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
+    if not families:
+        return np.zeros((0,) + shape)
+    circ = model.circumference_mm
+    z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
+    rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
+    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(signed_arc_mm(rel, circ), circ, model.wraps)))  # [W, ...]
+    extra = (1,) * len(shape)
+    offset, sign, image = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
+                           for name in ("in_offset_mm", "in_sign", "rx_image_mm"))
+    zeta = offset + sign * z[None]  # [F, ...]
+    s = _element_arcs(model, (rel + rx_angle_deg) * (circ / 360.0), len(shape))  # [E, ...]
+    r_in = np.sqrt(np.square(zeta)[:, None] + np.square(s)[None])  # [F, E, ...]
+    dz = image - z[None]  # [F, ...]
+    r_out = np.hypot(dz[:, None], legs[None])  # [F, W, ...]
+    along = (sign * zeta * dz)[:, None, None] / (r_in[:, None] * r_out[:, :, None])  # [F, W, E, ...]
+    round_ = -(s[None, None] * legs[None, :, None]) / (r_in[:, None] * r_out[:, :, None])
+    return np.where(np.isfinite(along + round_), along + round_, 1.0).reshape((-1,) + shape)
 
 
 def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndarray,
