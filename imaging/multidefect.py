@@ -462,7 +462,8 @@ def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> 
     (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the six-leg fit with a
     first-order directional pattern (PATTERN_ORDERS) leaves of the record with the other defects'
     echoes removed (``alone``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
-    the parabola through the best three, kept inside the region. Where the map does not localize
+    the parabola through the best three, kept inside the region; each coarse step tried with every
+    forward lag of FORWARD_LAGS_RAD (by default none but 0), the best lag kept on the defect. Where the map does not localize
     the defect at all its position is kept (there the fit was measured to wander: an 8-ring light
     mass with a searched stretch, 13 -> 40 mm). The DI, severity, runner-up and confidence stay
     the map's (``Found.peak``).
