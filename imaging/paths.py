@@ -170,25 +170,15 @@ def element_scattering_cosines(model: PathModel, axial_mm: np.ndarray, rel_angle
     order): psi the scattering angle at the pixel, between the incident wave's direction there (the
     gradient of the incident length) and the way out to the receiver (minus the gradient of the
     outgoing one), on the unrolled wall, end images unfolded."""
-    families = model.families()
-    shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
-    if not families:
-        return np.zeros((0,) + shape)
-    circ = model.circumference_mm
-    z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
-    rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
-    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(signed_arc_mm(rel, circ), circ, model.wraps)))  # [W, ...]
-    extra = (1,) * len(shape)
-    offset, sign, image = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
-                           for name in ("in_offset_mm", "in_sign", "rx_image_mm"))
-    zeta = offset + sign * z[None]  # [F, ...]
-    s = _element_arcs(model, (rel + rx_angle_deg) * (circ / 360.0), len(shape))  # [E, ...]
-    r_in = np.sqrt(np.square(zeta)[:, None] + np.square(s)[None])  # [F, E, ...]
-    dz = image - z[None]  # [F, ...]
-    r_out = np.hypot(dz[:, None], legs[None])  # [F, W, ...]
-    along = (sign * zeta * dz)[:, None, None] / (r_in[:, None] * r_out[:, :, None])  # [F, W, E, ...]
-    round_ = -(s[None, None] * legs[None, :, None]) / (r_in[:, None] * r_out[:, :, None])
-    return np.where(np.isfinite(along + round_), along + round_, 1.0).reshape((-1,) + shape)
+    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg)
+    if legs is None:
+        return np.zeros((0,) + _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg))
+    s = _element_arcs(model, legs.pixel_arc, len(legs.shape))  # [E, ...]
+    r_in = np.sqrt(np.square(legs.zeta)[:, None] + np.square(s)[None])  # [F, E, ...]
+    along = (legs.sign * legs.zeta * legs.dz)[:, None, None]  # [F, 1, 1, ...]
+    round_ = -(s[None, None] * legs.legs[None, :, None])  # [1, W, E, ...]
+    cos_psi = (along + round_) / (r_in[:, None] * legs.r_out[:, :, None])  # [F, W, E, ...]
+    return np.where(np.isfinite(cos_psi), cos_psi, 1.0).reshape((-1,) + legs.shape)
 
 
 def incident_terms(model: PathModel, axial_mm: np.ndarray, pixel_arc_mm: np.ndarray,
@@ -315,33 +305,62 @@ def _scalar_weight(factor: float, axial: float, r: float, model: PathModel) -> f
     return w
 
 
+@dataclass(frozen=True)
+class _ElementLegs:
+    """What every path of a model with Tx elements shares at a set of pixels: the broadcast ``shape``,
+    each pixel's arc round the pipe from angle 0, the circumferential ``legs`` [W, ...] to the
+    receiver, and per family [F, ...] the unfolded incident distance ``zeta``, its ``sign``, the
+    end-echo ``factor``, the axial distance ``dz`` to the receiver's image and the outgoing lengths
+    ``r_out`` [F, W, ...]."""
+
+    shape: tuple[int, ...]
+    pixel_arc: np.ndarray
+    legs: np.ndarray
+    sign: np.ndarray
+    factor: np.ndarray
+    zeta: np.ndarray
+    dz: np.ndarray
+    r_out: np.ndarray
+
+
+def _pixels_shape(axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray) -> tuple:
+    return np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
+
+
+def _element_legs(model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray,
+                  rx_angle_deg: float | np.ndarray) -> _ElementLegs | None:
+    """The shared geometry of ``_stacked_element_paths`` and ``element_scattering_cosines`` (None: no families)."""
+    families = model.families()
+    if not families:
+        return None
+    shape = _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg)
+    circ = model.circumference_mm
+    z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
+    rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
+    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(signed_arc_mm(rel, circ), circ, model.wraps)))  # [W, ...]
+    extra = (1,) * len(shape)
+    offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
+                                   for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
+    dz = image - z[None]  # [F, ...]
+    return _ElementLegs(shape, (rel + rx_angle_deg) * (circ / 360.0), legs, sign, factor,
+                        offset + sign * z[None], dz, np.hypot(dz[:, None], legs[None]))
+
+
 def _stacked_element_paths(
     model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``stacked_paths`` of a model with Tx elements: families x wraps x element images, in ``scatter_paths``' order."""
-    families = model.families()
-    shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(rx_angle_deg))
-    if not families:
+    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg)
+    if legs is None:
+        shape = _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg)
         return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
-    circ = model.circumference_mm
-    z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
-    rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
-    pixel_arc = (rel + rx_angle_deg) * (circ / 360.0)
-    arc = signed_arc_mm(rel, circ)
-    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(arc, circ, model.wraps)))  # [W, ...]
-    extra = (1,) * len(shape)
-    offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
-                                   for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
-    zeta = offset + sign * z[None]  # [F, ...]
-    r_in, w_in = (np.moveaxis(a, 0, 1) for a in _element_incident(model, zeta, pixel_arc))  # [F, E, ...]
-    dz = image - z[None]  # [F, ...]
-    r_out = np.hypot(dz[:, None], legs[None])  # [F, W, ...]
-    w_out = path_weight(factor[:, None], dz[:, None], r_out, model)
-    length = r_in[:, None] + r_out[:, :, None]  # [F, W, E, ...]
+    r_in, w_in = (np.moveaxis(a, 0, 1) for a in _element_incident(model, legs.zeta, legs.pixel_arc))  # [F, E, ...]
+    w_out = path_weight(legs.factor[:, None], legs.dz[:, None], legs.r_out, model)
+    length = r_in[:, None] + legs.r_out[:, :, None]  # [F, W, E, ...]
     weight = w_in[:, None] * w_out[:, :, None]
-    n_f, n_w, n_e = len(families), model.wraps, r_in.shape[1]
+    n_f, n_w, n_e = legs.zeta.shape[0], model.wraps, r_in.shape[1]
     groups = np.repeat(np.arange(n_f * n_w, dtype=np.int64), n_e)
-    return groups, length.reshape((-1,) + shape), weight.reshape((-1,) + shape)
+    return groups, length.reshape((-1,) + legs.shape), weight.reshape((-1,) + legs.shape)
 
 
 def scalar_paths(model: PathModel, z_mm: float, rel_angle_deg: float,
