@@ -527,7 +527,7 @@ def _echo_fit_angle(item: Found, alone: Callable[[], _Search]) -> Found:
 
     def unexplained(angle: float) -> float:
         if angle not in left:
-            at = Found(dataclasses.replace(estimate, angle_deg=angle % 360.0), item.di_map, item.severity)
+            at = dataclasses.replace(item, estimate=dataclasses.replace(estimate, angle_deg=angle % 360.0))  # its lag too
             leftover = rest.original - sum(rest.fits([at]))
             left[angle] = float(np.sum(leftover * leftover))
         return left[angle]

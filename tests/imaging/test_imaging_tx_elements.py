@@ -223,6 +223,9 @@ def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_forward_lag_its
     placed = multidefect._echo_fit_axial(scene, item, lambda: search)
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
     assert placed.forward_lag_rad == lag_rad and placed.map_peak == item.estimate
+    off = dataclasses.replace(placed, estimate=dataclasses.replace(placed.estimate, angle_deg=62.0))
+    turned = multidefect._echo_fit_angle(off, lambda: search)  # turned back with the lag it was placed with
+    assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.forward_lag_rad == lag_rad
 
 
 @pytest.mark.parametrize(("axial_mm", "angle_deg"), [(100.0, 45.0), (200.0, 200.0)])
