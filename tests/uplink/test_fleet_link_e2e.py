@@ -17,6 +17,7 @@ import signal
 import socket
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -25,7 +26,7 @@ import httpx
 import psycopg
 import pytest
 from sqlalchemy import func, select
-from sqlalchemy.orm import undefer
+from sqlalchemy.orm import Session, undefer
 
 from db.database import Database, open_database
 from db.models import (
@@ -98,21 +99,13 @@ class Edge:
         return _counts(self.db_url)
 
     def queue_depth(self) -> int:
-        database = open_database(self.db_url, upgrade=False)
-        try:
-            with database.session() as session:
-                return queue_stats(session).depth
-        finally:
-            database.dispose()
+        with _reading(self.db_url) as session:
+            return queue_stats(session).depth
 
     def baseline_events(self) -> set[str]:
         """The nodes with a baseline_changed event in this edge's outbox."""
-        database = open_database(self.db_url, upgrade=False)
-        try:
-            with database.session() as session:
-                return set(session.scalars(select(EventRow.node_id).where(EventRow.kind == "baseline_changed")))
-        finally:
-            database.dispose()
+        with _reading(self.db_url) as session:
+            return set(session.scalars(select(EventRow.node_id).where(EventRow.kind == "baseline_changed")))
 
     def scrape(self, path: str) -> httpx.Response:
         assert self.gateway is not None
@@ -125,14 +118,21 @@ class Edge:
                 proc.close()
 
 
-def _counts(url: str) -> dict[str, int]:
+@contextmanager
+def _reading(url: str) -> Iterator[Session]:
+    """A session on the database at ``url`` (already migrated), its engine disposed afterwards."""
     database = open_database(url, upgrade=False)
     try:
         with database.session() as session:
-            return dict(session.execute(
-                select(MeasurementRow.node_id, func.count()).group_by(MeasurementRow.node_id)).all())
+            yield session
     finally:
         database.dispose()
+
+
+def _counts(url: str) -> dict[str, int]:
+    with _reading(url) as session:
+        return dict(session.execute(
+            select(MeasurementRow.node_id, func.count()).group_by(MeasurementRow.node_id)).all())
 
 
 def _free_port() -> int:
