@@ -67,6 +67,7 @@ from imaging.timing import MM_PER_M
 NORMALISATIONS = ("snr", "amplitude")
 LOCAL_GRAM_CACHE = 128  # small grids' Gram inverses kept (a 17 x 17 grid's: ~0.3 MB with 8 groups)
 GRAM_RIDGE = 1e-6  # the groups' cross-Gram is inverted with this fraction of its largest diagonal term added
+GRAM_BLOCK_PIXELS = 1 << 13  # a grid's Grams are summed and inverted this many pixels (whole rings) at a time
 #                   to the diagonal (a group without paths there, or two coinciding ones, stay finite)
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
 WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
@@ -243,8 +244,7 @@ def gram_inverse(gram: np.ndarray) -> np.ndarray:
     """The inverse of each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, packed
     as ``joint_power`` reads it (``pack_hermitian``: [2, G (G + 1) / 2, n_pixels]).
 
-    ``gram`` itself gets the ridge (callers pass a sum they drop): a 1 mm x 1 deg map's Grams are
-    ~0.75 GB, and inverting them in place of a ridged copy keeps one such array fewer alive."""
+    ``gram`` itself gets the ridge (callers pass a sum they drop): no ridged copy of it is made."""
     stacked = np.moveaxis(gram, (0, 1), (-2, -1))
     _add_ridge(stacked)
     return pack_hermitian(np.linalg.inv(stacked))
@@ -271,17 +271,27 @@ def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: 
                         mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
     """The inverse of the groups' cross-Gram summed over the healthy receivers, packed for each of the
     grid's pixels (``gram_inverse``; a plane-wave model's: one path per group and receiver).
-    ``burst``: (excitation_hz, cycles) of the feature."""
+    ``burst``: (excitation_hz, cycles) of the feature.
+
+    Summed and inverted GRAM_BLOCK_PIXELS at a time (whole rings of pixels, so that a shared table's
+    turn round the pipe stays inside the block): a 1 mm x 1 deg map's Grams would be ~0.75 GB at
+    once with their sum, a receiver's and the inverse alive together (the first 16-ring ``analyze``
+    of a record with end echoes peaked at 2.9 GB; block by block 1.2 GB, the packed inverse kept
+    0.39 GB of it)."""
     n_groups = coherence_groups(model)
     covariance = analytic_noise_covariance(fs_hz, *burst)
-    total = np.zeros((n_groups, n_groups) + grid.shape, dtype=np.complex128)
-    for (angle, roll), healthy in zip(plan, mask, strict=True):
-        if healthy:
-            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
-                                  cycles)
-            gram = cross_gram(table.groups, table.idx, table.w, covariance, n_groups, n_samples)
-            _add_rolled(total, gram.reshape(total.shape), roll)
-    inverse = gram_inverse(total)
+    tables = [(_cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz, cycles),
+               roll) for (angle, roll), healthy in zip(plan, mask, strict=True) if healthy]
+    n_axial, n_angle = grid.shape
+    inverse = np.empty((2, n_groups * (n_groups + 1) // 2, n_axial * n_angle))
+    rows = max(1, GRAM_BLOCK_PIXELS // n_angle)  # the rolls turn the pipe: a block is whole rings of pixels
+    for first in range(0, n_axial, rows):
+        block = np.zeros((n_groups, n_groups, min(rows, n_axial - first), n_angle), dtype=np.complex128)
+        pixels = slice(first * n_angle, first * n_angle + block.shape[2] * n_angle)
+        for table, roll in tables:
+            gram = cross_gram(table.groups, table.idx[:, pixels], table.w[:, pixels], covariance, n_groups, n_samples)
+            _add_rolled(block, gram.reshape(block.shape), roll)
+        inverse[:, :, pixels] = gram_inverse(block)
     inverse.setflags(write=False)
     return inverse
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from imaging import gather
+from imaging import gather, multipath
 from imaging.analysis import analyze
 from imaging.arrivals import analytic_noise_covariance
 from imaging.grid import Grid
@@ -67,6 +67,30 @@ def test_fast_multipath_map_matches_the_literal_sum(problem):
     literal = literal_multipath_pixels(feature, scene, normalise=normalise)
     scale = max(float(np.abs(literal).max()), 1e-12)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)  # single-precision gather
+
+
+@pytest.mark.parametrize("block_pixels", [5, 36, 72, 1 << 13])
+def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels):
+    # A 1 mm x 1 deg map's Grams would be ~0.75 GB at once: they are summed and inverted whole rings
+    # of pixels at a time (GRAM_BLOCK_PIXELS; fewer pixels than a ring: one ring). Receivers on the
+    # grid share a table turned round the pipe, and a turn never crosses a block: 1, 2 (7 rows =
+    # 2 + 2 + 2 + 1) or all rows at a time give the literal per-pixel map.
+    model = PathModel(tx_rx_distance_mm=400.0, circumference_mm=340.0, wavelength_mm=38.0, near_end_mm=-300.0,
+                      far_end_mm=700.0, near_reflection=0.8, far_reflection=0.6)
+    grid = Grid(30.0, 45.0, 7, 0.0, 10.0, 36)
+    rng = np.random.default_rng(4)
+    feature = rng.standard_normal((6, 900)) + 1j * rng.standard_normal((6, 900))
+    scene = Scene(rx_angles_deg=np.arange(6) * 60.0, rx_mask=np.array([True, True, False, True, True, True]),
+                  excitation_hz=85e3, cycles=5, window_samples=1, model=model, grid=grid, power=1, joint_groups=True,
+                  velocity_m_s=3250.0, t0_s=0.0, fs_hz=1e6)
+    monkeypatch.setattr(multipath, "GRAM_BLOCK_PIXELS", block_pixels)
+    multipath._gram_inverse_total.cache_clear()
+    try:
+        fast = multipath_pixels(feature, scene)
+    finally:
+        multipath._gram_inverse_total.cache_clear()  # no inverse built with this block size is kept
+    literal = literal_multipath_pixels(feature, scene)
+    np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * float(np.abs(literal).max()))
 
 
 def test_groups_projected_jointly_place_a_point_the_power_sum_pulls_towards_the_rx_ring():
