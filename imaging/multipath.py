@@ -197,17 +197,21 @@ def _rolls_onto_itself(model: PathModel, shift_deg: float) -> bool:
 
 
 def _receiver_plan(grid: Grid, rx_angles_deg: np.ndarray, model: PathModel) -> list[tuple[float, int]]:
-    """(table angle, roll in pixels) per receiver: on-grid receivers of a full ring share receiver 0's table
-    (with Tx elements: only where the turn maps the elements onto themselves)."""
-    ref = float(rx_angles_deg[0])
+    """(table angle, roll in pixels) per receiver: on a grid round the whole pipe, a receiver a whole
+    number of angle steps from an earlier table's angle shares that table, turned (with Tx elements:
+    only where the turn maps the elements onto themselves); the others get their own. A 16-ring at
+    22.5 deg on a 1 deg grid: two tables (0 and 22.5 deg), not one and eight."""
+    tables: list[float] = []
     plan = []
-    for angle in rx_angles_deg:
-        steps = (float(angle) - ref) / grid.angle_step_deg
-        if (grid.wraps_in_angle and abs(steps - round(steps)) < 1e-9
-                and _rolls_onto_itself(model, float(angle) - ref)):
-            plan.append((ref, round(steps) % grid.angle_count))
+    for angle in (float(a) for a in rx_angles_deg):
+        for ref in tables if grid.wraps_in_angle else ():
+            steps = (angle - ref) / grid.angle_step_deg
+            if abs(steps - round(steps)) < 1e-9 and _rolls_onto_itself(model, angle - ref):
+                plan.append((ref, round(steps) % grid.angle_count))
+                break
         else:
-            plan.append((float(angle), 0))
+            tables.append(angle)
+            plan.append((angle, 0))
     return plan
 
 
@@ -220,6 +224,21 @@ def _add_rolled(total: np.ndarray, part: np.ndarray, shift: int) -> None:
     shift %= part.shape[-1]
     total[..., shift:] += part[..., :-shift]
     total[..., :shift] += part[..., -shift:]
+
+
+def _add_turns(total: np.ndarray, part: np.ndarray, turns: list[int]) -> None:
+    """``total += sum over turns t of np.roll(part, t, axis=-1)``. Turns that go round the pipe in k
+    equal steps (a full ring's receivers sharing one table) add the same ``part`` folded: each pixel
+    gets the sum over its k images, period n / k, so ``part`` is read once instead of k times."""
+    n, k = part.shape[-1], len(turns)
+    if k > 1 and n % k == 0 and total.flags.c_contiguous:
+        period = n // k
+        if sorted(t % n for t in turns) == sorted((turns[0] + i * period) % n for i in range(k)):
+            fold = part.reshape(part.shape[:-1] + (k, period)).sum(axis=-2)
+            total.reshape(total.shape[:-1] + (k, period))[...] += np.roll(fold, turns[0] % period, axis=-1)[..., None, :]
+            return
+    for turn in turns:
+        _add_rolled(total, part, turn)
 
 
 @lru_cache(maxsize=32)
@@ -274,23 +293,28 @@ def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: 
     ``burst``: (excitation_hz, cycles) of the feature.
 
     Summed and inverted GRAM_BLOCK_PIXELS at a time (whole rings of pixels, so that a shared table's
-    turn round the pipe stays inside the block): a 1 mm x 1 deg map's Grams would be ~0.75 GB at
-    once with their sum, a receiver's and the inverse alive together (the first 16-ring ``analyze``
-    of a record with end echoes peaked at 2.9 GB; block by block 1.2 GB, the packed inverse kept
-    0.39 GB of it)."""
+    turn round the pipe stays inside the block), each table's Gram computed once per block for all
+    the receivers that share it (``_add_turns``): a 1 mm x 1 deg map's Grams are ~0.75 GB, and with
+    the sum, a receiver's and the inverse alive together the first 16-ring ``analyze`` of a record
+    with end echoes peaked at 2.9 GB; now 0.92 GB, of which the packed inverse kept is 0.39
+    (docs/benchmarks.md)."""
     n_groups = coherence_groups(model)
     covariance = analytic_noise_covariance(fs_hz, *burst)
+    rolls: dict[float, list[int]] = {}  # per table angle, the turns of the healthy receivers that share it
+    for (angle, roll), healthy in zip(plan, mask, strict=True):
+        if healthy:
+            rolls.setdefault(angle, []).append(roll)
     tables = [(_cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz, cycles),
-               roll) for (angle, roll), healthy in zip(plan, mask, strict=True) if healthy]
+               turns) for angle, turns in rolls.items()]
     n_axial, n_angle = grid.shape
     inverse = np.empty((2, n_groups * (n_groups + 1) // 2, n_axial * n_angle))
     rows = max(1, GRAM_BLOCK_PIXELS // n_angle)  # the rolls turn the pipe: a block is whole rings of pixels
     for first in range(0, n_axial, rows):
         block = np.zeros((n_groups, n_groups, min(rows, n_axial - first), n_angle), dtype=np.complex128)
         pixels = slice(first * n_angle, first * n_angle + block.shape[2] * n_angle)
-        for table, roll in tables:
+        for table, turns in tables:
             gram = cross_gram(table.groups, table.idx[:, pixels], table.w[:, pixels], covariance, n_groups, n_samples)
-            _add_rolled(block, gram.reshape(block.shape), roll)
+            _add_turns(block, gram.reshape(block.shape), turns)  # a shared table's Gram, once for its receivers
         inverse[:, :, pixels] = gram_inverse(block)
     inverse.setflags(write=False)
     return inverse

@@ -69,8 +69,10 @@ def test_fast_multipath_map_matches_the_literal_sum(problem):
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)  # single-precision gather
 
 
+@pytest.mark.parametrize("healthy", [6, 5])  # all six receivers (one table turned six times round), or one off
 @pytest.mark.parametrize("block_pixels", [5, 36, 72, 1 << 13])
-def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels):
+def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels,
+                                                                                            healthy):
     # A 1 mm x 1 deg map's Grams would be ~0.75 GB at once: they are summed and inverted whole rings
     # of pixels at a time (GRAM_BLOCK_PIXELS; fewer pixels than a ring: one ring). Receivers on the
     # grid share a table turned round the pipe, and a turn never crosses a block: 1, 2 (7 rows =
@@ -80,7 +82,7 @@ def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_
     grid = Grid(30.0, 45.0, 7, 0.0, 10.0, 36)
     rng = np.random.default_rng(4)
     feature = rng.standard_normal((6, 900)) + 1j * rng.standard_normal((6, 900))
-    scene = Scene(rx_angles_deg=np.arange(6) * 60.0, rx_mask=np.array([True, True, False, True, True, True]),
+    scene = Scene(rx_angles_deg=np.arange(6) * 60.0, rx_mask=np.arange(6) != (2 if healthy < 6 else -1),
                   excitation_hz=85e3, cycles=5, window_samples=1, model=model, grid=grid, power=1, joint_groups=True,
                   velocity_m_s=3250.0, t0_s=0.0, fs_hz=1e6)
     monkeypatch.setattr(multipath, "GRAM_BLOCK_PIXELS", block_pixels)
@@ -91,6 +93,19 @@ def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_
         multipath._gram_inverse_total.cache_clear()  # no inverse built with this block size is kept
     literal = literal_multipath_pixels(feature, scene)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * float(np.abs(literal).max()))
+
+
+@pytest.mark.parametrize("turns", [[0, 9, 18, 27], [5, 14, 23, 32], [32, 5, 23, 14], [0, 12, 24], [0, 9, 18],
+                                   [3], [0, 0], [0, 18]])
+def test_a_table_shared_by_several_receivers_adds_its_turns_folded_or_one_by_one_alike(turns):
+    # Turns in k equal steps round the pipe (the first four: 4 x 9 of 36 pixels, one 3 x 12) are added
+    # folded; the others one by one; either way each is np.roll's.
+    rng = np.random.default_rng(len(turns))
+    part = rng.standard_normal((2, 2, 3, 36)) + 1j * rng.standard_normal((2, 2, 3, 36))
+    total = rng.standard_normal(part.shape) + 1j * rng.standard_normal(part.shape)
+    expected = total + sum(np.roll(part, turn, axis=-1) for turn in turns)
+    multipath._add_turns(total, part, turns)
+    np.testing.assert_allclose(total, expected, rtol=0, atol=1e-12)
 
 
 def test_groups_projected_jointly_place_a_point_the_power_sum_pulls_towards_the_rx_ring():
