@@ -168,13 +168,17 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
         sub = times[::SEARCH_DECIMATION]
         target_sub = _below_band(current, current_key)[rows, ::SEARCH_DECIMATION]
         slope_sub = slope[rows, ::SEARCH_DECIMATION]
-        search = Resampler.of(_below_band(baseline, _traces_key(baseline))[rows] * gain, baseline.t0_s, baseline.fs_hz)
+        baseline_key = _traces_key(baseline)
+        search = _below_band_spline(baseline, baseline_key, rows)
 
         def per_rx_cost(stretches: np.ndarray) -> np.ndarray:
             """Residual energy [n_stretches, n_rx] of each candidate, all evaluated at once; samples
             the stretched baseline does not cover count for nothing."""
             at = sub[None, :] / (1.0 + stretches[:, None])
-            diff = target_sub[None] - search(at).transpose(1, 0, 2) - stretches[:, None, None] * slope_sub[None]
+            warmed = search(at).transpose(1, 0, 2)
+            if gain != 1.0:
+                warmed *= gain  # the spline is linear in the traces: the scaled baseline's
+            diff = target_sub[None] - warmed - stretches[:, None, None] * slope_sub[None]
             diff *= recorded(at, baseline)[:, None, :]
             return np.sum(diff * diff, axis=2)
 
@@ -197,7 +201,7 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     if best == 0.0:
         return 0.0, plain_residual, as_recorded_traces
     at = times / (1.0 + best)
-    moved = _own_reference_where_unrecorded(Resampler(baseline)(at) * gain + best * slope, at, baseline, current)
+    moved = _own_reference_where_unrecorded(_spline(baseline)(at) * gain + best * slope, at, baseline, current)
     stretched_residual = _relative_residual(target, moved[rows])
     # Stretch only when it explains a good part of the difference: a defect's echo right after
     # the direct arrival also "prefers" a tiny delay, and stretching it away would bias the map.
@@ -251,6 +255,19 @@ def _below_band(m: Measurement, key: tuple) -> np.ndarray:
         out.setflags(write=False)
         return out
     return m.derived("below_band", key, compute)
+
+
+def _below_band_spline(m: Measurement, key: tuple, rows: np.ndarray) -> Resampler:
+    """The interpolation of ``_below_band``'s ``rows`` of the record, derived once per record and
+    rows (a node's baseline is searched against every measurement; its spline's prefilter was a
+    twentieth of ``assess``)."""
+    return m.derived("below_band_spline", (key, tuple(int(r) for r in rows)),
+                     lambda: Resampler.of(_below_band(m, key)[rows], m.t0_s, m.fs_hz))
+
+
+def _spline(m: Measurement) -> Resampler:
+    """The interpolation of the record's traces (all receivers), derived once per record."""
+    return m.derived("spline", _traces_key(m), lambda: Resampler(m))
 
 
 def _in_band_energy(x: np.ndarray, m: Measurement) -> np.ndarray:

@@ -16,6 +16,7 @@ from imaging.compensation import (
     stretched,
 )
 from imaging.pipeline import AssessSettings, assess
+from imaging.resample import Resampler
 from tests.support.synthetic import baseline_and_scatterers, measurement, mock_pipe_record
 
 
@@ -42,6 +43,29 @@ def test_bss_recovers_a_known_stretch(true_stretch):
     # The search's first-order model of a warmer record (imaging/thermal.py) errs as stretch^4 in
     # energy: measured 8e-6 at 0.3 %, 3e-5 at 0.42 %, < 1e-9 within 0.02 %.
     assert residual < 1e-6 * max(1.0, (abs(true_stretch) / 1e-3) ** 4)
+
+
+def test_a_baselines_splines_are_fitted_once_and_again_when_its_traces_change_in_place(monkeypatch):
+    # A node's baseline is searched against every record: its two interpolating splines (the search's,
+    # below the band, and the stretched baseline's) are kept with it, keyed by its traces.
+    fits = []
+    fit = Resampler._fit
+    monkeypatch.setattr(Resampler, "_fit", lambda self, *args: (fits.append(1), fit(self, *args))[1])
+    base = _reverberant_record()
+    warm, warmer = stretched(base, 1e-4), stretched(base, 2e-4)
+
+    def fitted(current):
+        fits.clear()
+        found = best_stretch(base, current)[0]
+        assert found == best_stretch(replace(base), current)[0]  # a fresh copy of the baseline derives alike
+        return len(fits) - 2, found  # the copy's own two fits left out
+
+    first, found = fitted(warm)
+    assert found == pytest.approx(1e-4, abs=2e-6)
+    again, found = fitted(warmer)
+    assert found == pytest.approx(2e-4, abs=2e-6) and again == first - 2
+    np.multiply(base.traces, 1.5, out=base.traces)  # changed in place: fitted again
+    assert fitted(warmer)[0] == first
 
 
 def test_stretch_search_is_bounded():
