@@ -201,7 +201,7 @@ def _stretch_search(baseline: Measurement, current: Measurement, *, max_stretch:
     if best == 0.0:
         return 0.0, plain_residual, as_recorded_traces
     at = times / (1.0 + best)
-    moved = _own_reference_where_unrecorded(_spline(baseline)(at) * gain + best * slope, at, baseline, current)
+    moved = _own_reference_where_unrecorded(Resampler(baseline)(at) * gain + best * slope, at, baseline, current)
     stretched_residual = _relative_residual(target, moved[rows])
     # Stretch only when it explains a good part of the difference: a defect's echo right after
     # the direct arrival also "prefers" a tiny delay, and stretching it away would bias the map.
@@ -241,33 +241,33 @@ def _current_slope(m: Measurement, key: tuple) -> np.ndarray:
     return m.derived("thermal_slope", key, compute)
 
 
+def _band_limited(m: Measurement) -> np.ndarray:
+    """The record's traces (float64) with what lies above the excitation's band removed: flat to 2 f0
+    (where a 5-cycle burst's spectrum is below 1e-3 of its peak), a cosine taper to zero at 3 f0."""
+    n = m.n_samples
+    n_fft = sp_fft.next_fast_len(n, real=True)
+    f = sp_fft.rfftfreq(n_fft, 1.0 / m.fs_hz) / m.excitation_hz
+    response = np.where(f <= 2.0, 1.0, np.where(f >= 3.0, 0.0, 0.5 * (1.0 + np.cos(np.pi * (f - 2.0)))))
+    return sp_fft.irfft(sp_fft.rfft(m.traces.astype(np.float64), n_fft, axis=-1) * response, n_fft, axis=-1)[:, :n]
+
+
 def _below_band(m: Measurement, key: tuple) -> np.ndarray:
-    """The record's traces (float64, read-only) with what lies above the excitation's band removed:
-    flat to 2 f0 (where a 5-cycle burst's spectrum is below 1e-3 of its peak), a cosine taper to
-    zero at 3 f0. Derived once per record (a baseline is searched against every measurement; ``key``:
-    ``_traces_key(m)``)."""
+    """``_band_limited`` (read-only), derived once per record (the current, against each baseline
+    searched; ``key``: ``_traces_key(m)``)."""
     def compute() -> np.ndarray:
-        n = m.n_samples
-        n_fft = sp_fft.next_fast_len(n, real=True)
-        f = sp_fft.rfftfreq(n_fft, 1.0 / m.fs_hz) / m.excitation_hz
-        response = np.where(f <= 2.0, 1.0, np.where(f >= 3.0, 0.0, 0.5 * (1.0 + np.cos(np.pi * (f - 2.0)))))
-        out = sp_fft.irfft(sp_fft.rfft(m.traces.astype(np.float64), n_fft, axis=-1) * response, n_fft, axis=-1)[:, :n]
+        out = _band_limited(m)
         out.setflags(write=False)
         return out
     return m.derived("below_band", key, compute)
 
 
 def _below_band_spline(m: Measurement, key: tuple, rows: np.ndarray) -> Resampler:
-    """The interpolation of ``_below_band``'s ``rows`` of the record, derived once per record and
-    rows (a node's baseline is searched against every measurement; its spline's prefilter was a
-    twentieth of ``assess``)."""
+    """The interpolation of ``_band_limited``'s ``rows`` of the record, derived once per record and
+    rows: a node's baseline is searched against every measurement, and the spline's prefilter was
+    ~1.6 ms of a 36 ms ``assess``. A baseline keeps the spline's coefficients (as many numbers as
+    the filtered traces), not the filtered traces too."""
     return m.derived("below_band_spline", (key, tuple(int(r) for r in rows)),
-                     lambda: Resampler.of(_below_band(m, key)[rows], m.t0_s, m.fs_hz))
-
-
-def _spline(m: Measurement) -> Resampler:
-    """The interpolation of the record's traces (all receivers), derived once per record."""
-    return m.derived("spline", _traces_key(m), lambda: Resampler(m))
+                     lambda: Resampler.of(_band_limited(m)[rows], m.t0_s, m.fs_hz))
 
 
 def _in_band_energy(x: np.ndarray, m: Measurement) -> np.ndarray:
