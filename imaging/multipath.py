@@ -184,6 +184,14 @@ _tables: LRUCache = LRUCache(maxsize=TABLE_CACHE_BYTES, getsizeof=lambda table: 
 # tables while they fit; a table larger than the whole budget is built and used, not kept.
 _cached_table = cached(_tables, lock=threading.Lock())(build_table)
 
+# A grid's sums over its receivers, kept the same way (by bytes: a receiver mask that changes, a
+# node whose channel comes and goes, makes a new entry; 32 by count were 0.8 GB of coarse 16-ring
+# Gram inverses, or 12 GB of 1 mm x 1 deg ones).
+GRAM_CACHE_BYTES = 1 << 30  # Gram inverses: ~40 coarse 16-ring maps' with end echoes (26 MB), two 1 mm maps' (0.39 GB)
+WEIGHT_CACHE_BYTES = 1 << 28  # per-group weight sums: ~90 coarse 16-ring maps' (2.8 MB), six 1 mm maps' (42 MB)
+_gram_inverses: LRUCache = LRUCache(maxsize=GRAM_CACHE_BYTES, getsizeof=lambda inverse: inverse.nbytes)
+_weight_sums: LRUCache = LRUCache(maxsize=WEIGHT_CACHE_BYTES, getsizeof=lambda sums: sum(a.nbytes for a in sums))
+
 
 def _rolls_onto_itself(model: PathModel, shift_deg: float) -> bool:
     """Does turning the pipe by ``shift_deg`` leave the model's Tx elements where they were (always, for a plane wave)?"""
@@ -241,7 +249,7 @@ def _add_turns(total: np.ndarray, part: np.ndarray, turns: list[int]) -> None:
         _add_rolled(total, part, turn)
 
 
-@lru_cache(maxsize=32)
+@cached(_weight_sums, lock=threading.Lock())
 def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
                      t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
                      mask: tuple[bool, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +292,7 @@ def _with_ridge(stacked: np.ndarray) -> np.ndarray:
     return out
 
 
-@lru_cache(maxsize=32)
+@cached(_gram_inverses, lock=threading.Lock())
 def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
                         t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
                         mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
@@ -327,7 +335,7 @@ def _check_arguments(feature: np.ndarray, scene: Scene, normalise: str) -> None:
         raise MultipathError(f"normalise must be one of {NORMALISATIONS}")
 
 
-def _geometry(scene: Scene, n_samples: int) -> tuple:
+def _geometry(scene: Scene, n_samples: int) -> tuple[PathModel, float, float, float, int, int, float, int]:
     """What a gather table depends on besides the grid and the receiver angle (the table cache's key)."""
     elements = scene.model.elements
     return (scene.model, scene.velocity_m_s, scene.t0_s, scene.fs_hz, n_samples, scene.power,

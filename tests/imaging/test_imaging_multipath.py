@@ -1,6 +1,7 @@
 """The all-paths map: the fast gather equals the literal per-pixel sum, and it localizes through noise."""
 import dataclasses
 
+import cachetools
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -11,7 +12,7 @@ from imaging.analysis import analyze
 from imaging.arrivals import analytic_noise_covariance
 from imaging.grid import Grid
 from imaging.multipath import literal_multipath_pixels, multipath_pixels
-from imaging.paths import PathModel, PathModelError, wrap_offsets_mm
+from imaging.paths import PathModel, PathModelError, coherence_groups, wrap_offsets_mm
 from imaging.pipeline import AssessSettings, assess
 from imaging.scene import Scene
 from imaging.timing import surface_distance_mm
@@ -69,6 +70,48 @@ def test_fast_multipath_map_matches_the_literal_sum(problem):
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)  # single-precision gather
 
 
+def _joint_problem(mask: np.ndarray) -> tuple[np.ndarray, Scene]:
+    """A six-receiver ring on a 7 x 36 grid round the pipe, end echoes (several coherence groups), the
+    groups projected jointly; a complex feature of noise."""
+    model = PathModel(tx_rx_distance_mm=400.0, circumference_mm=340.0, wavelength_mm=38.0, near_end_mm=-300.0,
+                      far_end_mm=700.0, near_reflection=0.8, far_reflection=0.6)
+    rng = np.random.default_rng(4)
+    feature = rng.standard_normal((6, 900)) + 1j * rng.standard_normal((6, 900))
+    return feature, Scene(rx_angles_deg=np.arange(6) * 60.0, rx_mask=mask, excitation_hz=85e3, cycles=5,
+                          window_samples=1, model=model, grid=Grid(30.0, 45.0, 7, 0.0, 10.0, 36), power=1,
+                          joint_groups=True, velocity_m_s=3250.0, t0_s=0.0, fs_hz=1e6)
+
+
+def test_a_grids_gram_inverses_are_kept_by_bytes_not_by_count(monkeypatch):
+    # A receiver mask that changes (a channel that comes and goes) makes another inverse: what is kept
+    # is bounded by bytes, and one larger than the whole budget is used, not kept.
+    feature, scene = _joint_problem(np.ones(6, bool))
+    _, other = _joint_problem(np.arange(6) != 2)
+    expected = literal_multipath_pixels(feature, scene)
+
+    kept = multipath._gram_inverse_total.cache
+    multipath._gram_inverse_total.cache_clear()
+    multipath_pixels(feature, scene)
+    inverse_bytes = kept.currsize
+    groups = coherence_groups(scene.model)
+    assert len(kept) == 1 and inverse_bytes == 2 * groups * (groups + 1) // 2 * 7 * 36 * 8  # [2, G (G + 1) / 2, pixels]
+    assert kept.maxsize == multipath.GRAM_CACHE_BYTES
+
+    def budget(max_bytes: int) -> cachetools.LRUCache:
+        cache = cachetools.LRUCache(maxsize=max_bytes, getsizeof=kept.getsizeof)
+        monkeypatch.setattr(multipath, "_gram_inverse_total",
+                            cachetools.cached(cache)(multipath._gram_inverse_total.__wrapped__))
+        return cache
+
+    room_for_one = budget(inverse_bytes)
+    np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=0, atol=2e-5 * np.abs(expected).max())
+    multipath_pixels(feature, other)  # another mask: room is made
+    assert len(room_for_one) == 1 and room_for_one.currsize == inverse_bytes
+    too_small = budget(inverse_bytes - 1)
+    np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=0, atol=2e-5 * np.abs(expected).max())
+    assert len(too_small) == 0
+
+
 @pytest.mark.parametrize("healthy", [6, 5])  # all six receivers (one table turned six times round), or one off
 @pytest.mark.parametrize("block_pixels", [5, 36, 72, 1 << 13])
 def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels,
@@ -77,14 +120,7 @@ def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_
     # of pixels at a time (GRAM_BLOCK_PIXELS; fewer pixels than a ring: one ring). Receivers on the
     # grid share a table turned round the pipe, and a turn never crosses a block: 1, 2 (7 rows =
     # 2 + 2 + 2 + 1) or all rows at a time give the literal per-pixel map.
-    model = PathModel(tx_rx_distance_mm=400.0, circumference_mm=340.0, wavelength_mm=38.0, near_end_mm=-300.0,
-                      far_end_mm=700.0, near_reflection=0.8, far_reflection=0.6)
-    grid = Grid(30.0, 45.0, 7, 0.0, 10.0, 36)
-    rng = np.random.default_rng(4)
-    feature = rng.standard_normal((6, 900)) + 1j * rng.standard_normal((6, 900))
-    scene = Scene(rx_angles_deg=np.arange(6) * 60.0, rx_mask=np.arange(6) != (2 if healthy < 6 else -1),
-                  excitation_hz=85e3, cycles=5, window_samples=1, model=model, grid=grid, power=1, joint_groups=True,
-                  velocity_m_s=3250.0, t0_s=0.0, fs_hz=1e6)
+    feature, scene = _joint_problem(np.arange(6) != (2 if healthy < 6 else -1))
     monkeypatch.setattr(multipath, "GRAM_BLOCK_PIXELS", block_pixels)
     multipath._gram_inverse_total.cache_clear()
     try:
