@@ -35,7 +35,7 @@ sum of squared weights becomes sum_ab w_a w_b r(|k_a - k_b|) per receiver (imagi
 ``coherent_energy``), so that noise alone still scores the same as with a plane wave.
 
 Fast path: for each receiver the (sample index, weight) of every path and pixel is computed
-once per geometry and cached; a uniform ring whose angles fall on the grid shares one table,
+once per geometry and cached; receivers a whole number of grid steps apart share one table,
 rolled in angle per receiver.
 """
 from __future__ import annotations
