@@ -67,8 +67,8 @@ from imaging.timing import MM_PER_M
 NORMALISATIONS = ("snr", "amplitude")
 LOCAL_GRAM_CACHE = 128  # small grids' Gram inverses kept (a 17 x 17 grid's: ~0.3 MB with 8 groups)
 GRAM_RIDGE = 1e-6  # the groups' cross-Gram is inverted with this fraction of its largest diagonal term added
-GRAM_BLOCK_PIXELS = 1 << 13  # a grid's Grams are summed and inverted this many pixels (whole rings) at a time
 #                   to the diagonal (a group without paths there, or two coinciding ones, stay finite)
+GRAM_BLOCK_PIXELS = 1 << 13  # a grid's Grams are summed and inverted this many pixels (whole rings) at a time
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
 WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
 # A sparse ring is modelled element by element only where its baseline shows it: the element model
