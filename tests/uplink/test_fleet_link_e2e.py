@@ -40,6 +40,7 @@ from db.models import (
 )
 from db.uplink_queue import queue_stats
 from tests.support.db_fixtures import PG_ADMIN_CONNINFO, PG_PORT
+from tests.support.metrics_text import sample, total
 from tests.support.process_harness import (
     PYTHON,
     Proc,
@@ -109,14 +110,8 @@ class Edge:
 
     def cycle_failures(self) -> dict[str, float]:
         """Per node, the cycles (or port openings) that stored no measurement, whatever the cause."""
-        failures = dict.fromkeys(self.nodes, 0.0)
-        for line in self.scrape("/metrics").text.splitlines():
-            if line.startswith("pipesentry_gateway_node_cycle_failures_total{"):
-                labels, value = line.rsplit(" ", 1)
-                for node in self.nodes:
-                    if f'node="{node}"' in labels:
-                        failures[node] += float(value)
-        return failures
+        metrics = self.scrape("/metrics").text
+        return {node: total(metrics, "pipesentry_gateway_node_cycle_failures_total", node=node) for node in self.nodes}
 
     def scrape(self, path: str) -> httpx.Response:
         assert self.gateway is not None
@@ -249,9 +244,9 @@ def test_the_centre_ends_with_exactly_the_edges_records_whatever_the_link_did(tm
         readiness = south.scrape("/readyz").json()
         assert readiness["uplink"]["queue_depth"] > 0 and "uplink" in readiness["reasons"][0]
         metrics = north.scrape("/metrics").text
-        assert _sample(metrics, "pipesentry_gateway_uplink_queue_depth") > 0
-        assert _sample(metrics, "pipesentry_gateway_uplink_lag_seconds") > 0
-        assert _sample(metrics, "pipesentry_gateway_uplink_failures_total") > 0
+        assert sample(metrics, "pipesentry_gateway_uplink_queue_depth") > 0
+        assert sample(metrics, "pipesentry_gateway_uplink_lag_seconds") > 0
+        assert sample(metrics, "pipesentry_gateway_uplink_failures_total") > 0
         outage_to = datetime.now().astimezone()
         centre.start()
 
@@ -269,7 +264,7 @@ def test_the_centre_ends_with_exactly_the_edges_records_whatever_the_link_did(tm
         south.proxy.wait_for("dropped", 2, PHASE_TIMEOUT_S)  # one of each kind
         until_each_node_has_more(edges, before, "measurements while the links break")
         south.proxy.set_mode("pass")
-        wait_until(lambda: _sample(north.scrape("/metrics").text, "pipesentry_gateway_uplink_duplicates_total") >= 1,
+        wait_until(lambda: sample(north.scrape("/metrics").text, "pipesentry_gateway_uplink_duplicates_total") >= 1,
                    PHASE_TIMEOUT_S, 0.3, what="the restarted gateway re-sending what the centre already stored")
 
         # The edges' watchers raise baseline_changed up to 30 s after the baseline (offline_after_s / 10):
@@ -312,13 +307,6 @@ def test_the_centre_ends_with_exactly_the_edges_records_whatever_the_link_did(tm
                 local.dispose()
     finally:
         central.dispose()
-
-
-def _sample(metrics: str, name: str) -> float:
-    for line in metrics.splitlines():
-        if line.startswith((name + " ", name + "{")):
-            return float(line.rsplit(" ", 1)[1])
-    raise AssertionError(f"{name} is not in the gateway's metrics")
 
 
 def _history(database: Database, node_id: str, *, with_blobs: bool) -> dict[str, list]:

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import httpx
 import pytest
-from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.orm import undefer
 
 from db.api_keys import create_api_key
@@ -24,6 +23,7 @@ from db.models import MeasurementRow, Role
 from db.retention import prune_traces
 from tests.support.api_fixtures import assert_problem
 from tests.support.central_site import Centre, north_edge, serve_centre
+from tests.support.metrics_text import sample
 from tests.support.process_harness import gateway_metrics_port, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(120)]
@@ -45,15 +45,6 @@ def sent_without_traces(centre: Centre, count: int) -> list[int] | None:
         return None
     ids = [m["id"] for m in page.json()["items"] if not m["traces_available"]]
     return ids[:count] if len(ids) >= count else None
-
-
-def sample(metrics: str, name: str, **labels: str) -> float:
-    """The value of one series of a Prometheus text exposition."""
-    for family in text_string_to_metric_families(metrics):
-        for series in family.samples:
-            if series.name == name and series.labels == labels:
-                return float(series.value)
-    raise AssertionError(f"{name}{labels or ''} is not in the gateway's metrics")
 
 
 def ask(centre: Centre, key: str, measurement_id: int) -> httpx.Response:
