@@ -234,6 +234,15 @@ def _add_rolled(total: np.ndarray, part: np.ndarray, shift: int) -> None:
     total[..., :shift] += part[..., -shift:]
 
 
+def _turns_by_table(plan: tuple[tuple[float, int], ...], mask: tuple[bool, ...]) -> dict[float, list[int]]:
+    """Per table angle of ``_receiver_plan``, the turns of the healthy receivers that share it."""
+    turns: dict[float, list[int]] = {}
+    for (angle, roll), healthy in zip(plan, mask, strict=True):
+        if healthy:
+            turns.setdefault(angle, []).append(roll)
+    return turns
+
+
 def _add_turns(total: np.ndarray, part: np.ndarray, turns: list[int]) -> None:
     """``total += sum over turns t of np.roll(part, t, axis=-1)``. Turns that go round the pipe in k
     equal steps (a full ring's receivers sharing one table) add the same ``part`` folded: each pixel
@@ -256,11 +265,9 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
     """Per group, the sum over the healthy receivers of their rolled ``weight_sq`` [n_groups, n_axial, n_angle],
     and its ``_reciprocal``."""
     total = np.zeros((coherence_groups(model),) + grid.shape)
-    for (angle, roll), healthy in zip(plan, mask, strict=True):
-        if healthy:
-            table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz,
-                                  cycles)
-            _add_rolled(total, table.weight_sq.reshape(total.shape), roll)
+    for angle, turns in _turns_by_table(plan, mask).items():
+        table = _cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz, cycles)
+        _add_turns(total, table.weight_sq.reshape(total.shape), turns)
     inverse = _reciprocal(total)
     total.setflags(write=False)
     inverse.setflags(write=False)
@@ -308,12 +315,8 @@ def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: 
     (docs/benchmarks.md)."""
     n_groups = coherence_groups(model)
     covariance = analytic_noise_covariance(fs_hz, *burst)
-    rolls: dict[float, list[int]] = {}  # per table angle, the turns of the healthy receivers that share it
-    for (angle, roll), healthy in zip(plan, mask, strict=True):
-        if healthy:
-            rolls.setdefault(angle, []).append(roll)
     tables = [(_cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz, cycles),
-               turns) for angle, turns in rolls.items()]
+               turns) for angle, turns in _turns_by_table(plan, mask).items()]
     n_axial, n_angle = grid.shape
     inverse = np.empty((2, n_groups * (n_groups + 1) // 2, n_axial * n_angle))
     rows = max(1, GRAM_BLOCK_PIXELS // n_angle)  # the rolls turn the pipe: a block is whole rings of pixels
