@@ -52,10 +52,10 @@ judged again without it. The kept ones are not re-located after a drop (tried: t
 leftover's fit had been taking off what the isotropic model leaves of the strong defect, and
 without it a kept mass moved 30 mm off and lost its localization).
 
-A sparse ring's defects (the Tx ring modelled element by element) are finally placed along their
-line where their echoes are best explained (``_echo_fit_axial``), within the map's stated region,
-then turned round the pipe within half a receiver pitch where the plain echo fit explains them
-best (``_echo_fit_angle``).
+A sparse ring's defects (the Tx ring modelled element by element), and any ring's on a record
+without end echoes (``echo_placed``), are finally placed along their line where their echoes are
+best explained (``_echo_fit_axial``), within the map's stated region, then turned round the pipe
+within half a receiver pitch where the plain echo fit explains them best (``_echo_fit_angle``).
 
 The found defects' echoes are fitted along FIT_WRAPS legs round the pipe, more than the map's two:
 the scattered wave keeps circling the pipe within the record (full-wave dev set, a notch's echoes
@@ -66,7 +66,6 @@ map itself were not tried).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -79,6 +78,7 @@ from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.localize import Estimate, exclusion_mask, parabolic_offset, peak_confidence, refine_peak
 from imaging.multipath import local_multipath_pixels, multipath_pixels
+from imaging.paths import PathModel
 from imaging.region import localization_region
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
@@ -115,6 +115,9 @@ ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is 
 # lag fitted on sparse rings: measured, not yet the default").
 FORWARD_LAGS_RAD: tuple[float, ...] = (0.0,)
 ECHO_FIT_ANGLE_STEP_DEG = 2.5  # ... then turned round the pipe within half a receiver pitch, at this step
+ECHO_PLACED_MAX_DI = 0.5  # a dense ring's defect without end echoes is echo-placed only below this DI: a scatterer
+#                          nearly as strong as the direct arrival is beyond the fit's single-scattering point (full-
+#                          wave 16-ring records: notches 0.02-0.42, masses 0.65-0.93; docs/imaging.md)
 PATTERN_MARGIN = 1.0  # ... by this factor: the patterned fit must leave this many times the energy
 #                    (1.2 removes most spurious defects but loses weak second notches: docs/imaging.md)
 
@@ -332,6 +335,7 @@ def find_defects(
 
     ring_first: tuple[np.ndarray, DIMap, Estimate] | None = None  # the strongest maximum fitted at a ring
     rejected: list[Found] = []
+    faint_rings: list[Found] = []  # faint maxima at a ring, ruled out by the search
     fitted: list[Found] = []  # found defects and maxima on a ring, in the order of their echoes in ``fits``
     reported: list[bool] = []  # per ``fitted``: a found defect (True) or a maximum on a ring, never reported
     for _ in range(2 * max_defects - 1):  # each pass reports a defect or rules a peak out
@@ -356,6 +360,7 @@ def find_defects(
         faint = bool(found) and _faint(scene, estimate.di, found[0].estimate.di)
         if at_a_ring and faint:
             rejected.append(Found(estimate, di_map, 0.0))  # too weak to bias the defects: not worth its unknowns
+            faint_rings.append(rejected[-1])
             continue
         if at_a_ring:
             # A maximum on the Tx or Rx ring is not located (the map would still rise beyond the
@@ -401,9 +406,30 @@ def find_defects(
         # Each is re-located with the others' echoes removed, a dropped leftover's included: its
         # fit takes off what the isotropic model leaves of the defect that made it.
         found = _confirmed(search, _refine(search, fitted, fits, reported), rings)
-    if scene.model.elements:
-        found = [_echo_fitted(search, item, rings + [f for f in found if f is not item]) for item in found]
+    if echo_placed(scene.model):
+        # Placed jointly with everything else the record holds, the faint maxima at a ring the search ruled
+        # out included: a change at a ring on a defect's line otherwise pulls the defect along it.
+        others = rings + faint_rings
+        found = [_echo_fitted(search, item, others + [f for f in found if f is not item])
+                 if scene.model.elements or item.estimate.di < ECHO_PLACED_MAX_DI else item for item in found]
     return first, found, first_peak
+
+
+def echo_placed(model: PathModel) -> bool:
+    """Are defects imaged with ``model`` placed by their echo fit (``_echo_fitted``) rather than left on the map's peak?
+
+    A sparse Tx ring's (modelled element by element, imaging/paths.py), and any ring's whose record
+    holds only the direct paths (no end echoes: absorbing or unknown ends); on a dense ring only a
+    defect below ECHO_PLACED_MAX_DI. Without end echoes the map's axial position rests on the
+    path-length curvature across the ring, where the map's isotropic point leaves a notch, whose
+    phase turns with the scattering angle, 9-32 mm towards the Rx ring (full-wave 16-ring records);
+    its echoes, followed six times round the pipe with a first-order pattern, place it closer (21 of
+    25 held-out notches; median 14.9 -> 6.9 mm). A scatterer nearly as strong as the direct arrival
+    (the light and near-rigid masses, DI 0.65-0.93) is beyond that single-scattering point: placed,
+    9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak.
+    With end echoes the map's crossing paths fix the position (reflecting 16-ring notches 0.4-2.2 mm
+    median). docs/imaging.md, "A dense ring's defect without end echoes placed by its echoes"."""
+    return model.elements or len(model.families()) == 1
 
 
 def explained_by_defects(residual: np.ndarray, scene: Scene, found: list[Found]) -> float:
@@ -443,25 +469,35 @@ def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
     return estimate.axial_mm <= lo + EDGE_MM or estimate.axial_mm >= hi - EDGE_MM
 
 
+Unexplained = Callable[[Found, int], float]  # what a fit with a defect there, echoes up to that order, leaves
+
+
 def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
-    """A sparse ring's defect placed by its echoes: along its line, then round the pipe. The
-    ``others``' echoes are fitted and removed once, when first needed (not for a defect the map
-    does not localize, which keeps its position)."""
-    alone = functools.cache(lambda: _without(search, others))
-    return _echo_fit_angle(_echo_fit_axial(search.scene, item, alone), alone)
+    """A defect placed by its echoes (``echo_placed``): along its line, then round the pipe, each
+    trial position fitted jointly with the ``others``' echoes (``_unexplained_by``)."""
+    unexplained = _unexplained_by(search, others)
+    return _echo_fit_angle(_echo_fit_axial(search.scene, item, unexplained), unexplained, search.scene.n_rx)
 
 
-def _without(search: _Search, others: list[Found]) -> _Search:
-    """The search on what is left of the record once the ``others``' echoes are removed."""
-    return _Search(search.original - sum(search.fits(others), np.zeros_like(search.original)), search.scene)
+def _unexplained_by(search: _Search, others: list[Found]) -> Unexplained:
+    """What the six-leg fit of a scatterer at a trial position, jointly with the ``others``' echoes
+    (defects and maxima at a ring, where they are) and all with echoes up to the given order, leaves
+    of the record: fitted together, the others cannot take up part of its echoes where their paths
+    cross (synthetic two points without end echoes: 15.5 mm off with the others removed first, 2.4 mm
+    fitted jointly)."""
+    def unexplained(at: Found, orders: int) -> float:
+        leftover = search.original - sum(search.fits(others + [at], orders=orders))
+        return float(np.sum(leftover * leftover))
+
+    return unexplained
 
 
-def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> Found:
-    """A sparse ring's defect placed along its line (the map's angle) where its echoes are best
+def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
+    """A defect (``echo_placed``) placed along its line (the map's angle) where its echoes are best
     explained: the axial position, within the map's own stated 90 % region round its peak
     (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the six-leg fit with a
-    first-order directional pattern (PATTERN_ORDERS) leaves of the record with the other defects'
-    echoes removed (``alone``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
+    first-order directional pattern (PATTERN_ORDERS), jointly with the other defects' echoes, leaves
+    of the record (``unexplained_by``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
     the parabola through the best three, kept inside the region; each coarse step tried with every
     forward lag of FORWARD_LAGS_RAD (by default none but 0), the best lag kept on the defect. Where the map does not localize
     the defect at all its position is kept (there the fit was measured to wander: an 8-ring light
@@ -471,8 +507,9 @@ def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> 
     With 8 elements the map's coherent sum leans on a few receivers and on the element model's
     incident field, and a strong scatterer's directional field pulls its peak along the axis (own
     full-wave free-end mass 26-30 mm off); the echoes themselves, round the pipe six times, place it
-    within 3-6 mm. Measured on 16-ring records it was mixed (dev absorbing notches closer, own ones
-    further), so it runs only for sparse rings (docs/imaging.md)."""
+    within 3-6 mm. On a dense ring's record without end echoes it places the full-wave 16-ring notches
+    closer than the map does (``echo_placed``); the echoes circle the pipe, so this needs the wrap
+    the wave travels (``wall_mm``)."""
     estimate = item.estimate
     region = localization_region(peak_confidence(item.di_map, estimate, circumference_mm=scene.circumference_mm,
                                                  runner_up_di=item.runner_up_di),
@@ -485,14 +522,12 @@ def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> 
     if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
         return item
     step = (hi - lo) / max(2, round((hi - lo) / ECHO_FIT_STEP_MM))
-    rest = alone()
     left: dict[tuple[float, float], float] = {}
 
     def unexplained(z: float, lag: float) -> float:
         if (z, lag) not in left:
             at = Found(dataclasses.replace(estimate, axial_mm=z), item.di_map, item.severity, forward_lag_rad=lag)
-            leftover = rest.original - sum(rest.fits([at], orders=PATTERN_ORDERS))
-            left[z, lag] = float(np.sum(leftover * leftover))
+            left[z, lag] = unexplained_by(at, PATTERN_ORDERS)
         return left[z, lag]
 
     coarse = np.linspace(lo, hi, 1 + round((hi - lo) / step))
@@ -508,11 +543,11 @@ def _echo_fit_axial(scene: Scene, item: Found, alone: Callable[[], _Search]) -> 
                                forward_lag_rad=lag)
 
 
-def _echo_fit_angle(item: Found, alone: Callable[[], _Search]) -> Found:
-    """A sparse ring's defect that ``_echo_fit_axial`` placed, turned round the pipe to where its
-    echoes are best explained: the angle, within half a receiver pitch of the map's, that minimises
-    what the six-leg *plain* fit (one amplitude per path, no directional pattern) leaves of the
-    record with the other defects' echoes removed (``alone``); steps of ECHO_FIT_ANGLE_STEP_DEG, then the parabola through the
+def _echo_fit_angle(item: Found, unexplained_by: Unexplained, n_rx: int) -> Found:
+    """A defect that ``_echo_fit_axial`` placed, turned round the pipe to where its echoes are best
+    explained: the angle, within half a pitch of the ``n_rx`` receivers from the map's, that minimises
+    what the six-leg *plain* fit (one amplitude per path, no directional pattern), jointly with the
+    other defects' echoes, leaves of the record (``unexplained_by``); steps of ECHO_FIT_ANGLE_STEP_DEG, then the parabola through the
     best three. A defect the axial fit left alone (not localized) keeps the map's angle.
 
     The map's angle leans towards a receiver's: on an 8-ring at 75 kHz without end echoes a notch
@@ -522,17 +557,16 @@ def _echo_fit_angle(item: Found, alone: Callable[[], _Search]) -> Found:
     against 0.55 at the map's angle)."""
     if item.map_peak is None:
         return item
-    estimate, rest = item.estimate, alone()
+    estimate = item.estimate
     left: dict[float, float] = {}
 
     def unexplained(angle: float) -> float:
         if angle not in left:
             at = dataclasses.replace(item, estimate=dataclasses.replace(estimate, angle_deg=angle % 360.0))  # its lag too
-            leftover = rest.original - sum(rest.fits([at]))
-            left[angle] = float(np.sum(leftover * leftover))
+            left[angle] = unexplained_by(at, 0)
         return left[angle]
 
-    steps = round(180.0 / rest.scene.n_rx / ECHO_FIT_ANGLE_STEP_DEG)
+    steps = round(180.0 / n_rx / ECHO_FIT_ANGLE_STEP_DEG)
     angles = [estimate.angle_deg + k * ECHO_FIT_ANGLE_STEP_DEG for k in range(-steps, steps + 1)]
     k = int(np.argmin([unexplained(a) for a in angles]))
     angle = angles[k]

@@ -42,6 +42,7 @@ from imaging.measurement import Measurement
 from imaging.modal import axisymmetric_fraction, default_modal_orders, remove_low_orders
 from imaging.multidefect import explained_by_defects, find_defects
 from imaging.multipath import path_model_for
+from imaging.paths import signed_arc_mm
 from imaging.region import Region, localization_region
 from imaging.scene import Scene
 
@@ -283,6 +284,9 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
                                runner_up_di=f.runner_up_di)
         region = localization_region(conf, circumference_mm=current.circumference_mm,
                                      axial_span_mm=current.tx_rx_distance_mm)
+        if f.map_peak is not None:  # placed by its echoes: the map's peak stays inside its region
+            arc = signed_arc_mm(np.array(f.map_peak.angle_deg - f.estimate.angle_deg), current.circumference_mm)
+            region = region.holding(f.map_peak.axial_mm - f.estimate.axial_mm, float(arc))
         defects.append(Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di, conf, f.severity, region))
     return first, peak, defects, explained
 

@@ -25,6 +25,7 @@ circumferential half-width is half the circumference too.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -57,6 +58,16 @@ class Region:
         diff = (true_angle_deg - angle_deg) % 360.0
         arc = min(diff, 360.0 - diff) * circumference_mm / 360.0
         return abs(true_axial_mm - axial_mm) <= self.axial_half_mm and arc <= self.circumferential_half_mm
+
+    def holding(self, axial_offset_mm: float, arc_offset_mm: float) -> Region:
+        """This region widened, where needed, to hold a second estimate at these offsets from the
+        estimate with the floors' margin round it (AXIAL_FLOOR_MM, CIRC_FLOOR_MM). A defect placed by
+        its echoes (imaging/multidefect.py ``echo_placed``) keeps its map's peak inside its region:
+        which of the two is nearer the truth depends on the defect's kind (full-wave 16-ring notches
+        without end echoes: the echoes; light masses: the map), which the record does not tell."""
+        return dataclasses.replace(
+            self, axial_half_mm=max(self.axial_half_mm, abs(axial_offset_mm) + AXIAL_FLOOR_MM),
+            circumferential_half_mm=max(self.circumferential_half_mm, abs(arc_offset_mm) + CIRC_FLOOR_MM))
 
     def as_dict(self) -> dict:
         return {

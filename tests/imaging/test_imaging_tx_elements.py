@@ -167,15 +167,15 @@ def test_a_sparse_rings_defect_is_turned_to_the_angle_its_echoes_give_within_hal
     scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
     waves = group_waves(scene, [(180.0, 50.0)], 5000)[:, 0]
     record = np.einsum("mgsn,gs->mn", waves, np.random.default_rng(7).standard_normal(waves.shape[1:3]))
-    search = multidefect._Search(record, scene)
+    unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
     off = Estimate(180.0, 65.0, 0.1)
     placed = multidefect.Found(off, None, 0.0, map_peak=Estimate(190.0, 65.0, 0.1))  # type: ignore[arg-type]
-    turned = multidefect._echo_fit_angle(placed, lambda: search)
+    turned = multidefect._echo_fit_angle(placed, unexplained, scene.n_rx)
     assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.estimate.axial_mm == 180.0
     unplaced = multidefect.Found(off, None, 0.0)  # type: ignore[arg-type]
-    assert multidefect._echo_fit_angle(unplaced, lambda: search).estimate == off
+    assert multidefect._echo_fit_angle(unplaced, unexplained, scene.n_rx).estimate == off
     beyond = multidefect.Found(Estimate(180.0, 80.0, 0.1), None, 0.0, map_peak=off)  # type: ignore[arg-type]
-    assert multidefect._echo_fit_angle(beyond, lambda: search).estimate.angle_deg >= 80.0 - 22.5  # half a pitch at most
+    assert multidefect._echo_fit_angle(beyond, unexplained, scene.n_rx).estimate.angle_deg >= 80.0 - 22.5  # half a pitch at most
 
 
 def test_a_path_straight_through_scatters_forward_and_every_angle_is_a_cosine():
@@ -218,13 +218,13 @@ def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_forward_lag_its
     monkeypatch.setattr(multidefect, "FORWARD_LAGS_RAD", (0.0, 1.0, 2.0, 3.0))  # the default tries 0 only
     monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
     monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
-    search = multidefect._Search(record, scene)
+    unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
     item = multidefect.Found(Estimate(194.0, 50.0, 0.1), None, 0.0)  # type: ignore[arg-type]
-    placed = multidefect._echo_fit_axial(scene, item, lambda: search)
+    placed = multidefect._echo_fit_axial(scene, item, unexplained)
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
     assert placed.forward_lag_rad == lag_rad and placed.map_peak == item.estimate
     off = dataclasses.replace(placed, estimate=dataclasses.replace(placed.estimate, angle_deg=62.0))
-    turned = multidefect._echo_fit_angle(off, lambda: search)  # turned back with the lag it was placed with
+    turned = multidefect._echo_fit_angle(off, unexplained, scene.n_rx)  # turned back with the lag it was placed with
     assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.forward_lag_rad == lag_rad
 
 

@@ -53,12 +53,21 @@ def test_a_detected_scatterer_lies_inside_its_stated_region_and_the_json_carries
 
 
 @pytest.mark.parametrize("axial_mm, angle_deg", [(250.0, 200.0), (320.0, 100.0)])
-def test_a_scatterers_forward_phase_lag_reads_as_an_axial_move_that_its_region_covers(axial_mm, angle_deg):
+@pytest.mark.parametrize("echo_placed", [False, True])
+def test_a_scatterers_forward_phase_lag_reads_as_an_axial_move_on_the_map_that_the_echo_fit_undoes(
+        axial_mm, angle_deg, echo_placed, monkeypatch):
     # Without end echoes, moving a scatterer by dz lengthens its path to every receiver by
     # dz (1 - cos psi); an echo whose phase lags by b (1 - cos psi), as a notch's does (b ~ 2.4 rad
-    # on the full-wave dev set, docs/accuracy.md), is therefore the echo of a point b / k further
-    # on. The estimate moves by about that (measured: 0.8-1.0 b / k here), the angle does not, and
-    # the stated region, as wide as the map's axial lobe, still holds the truth.
+    # on the full-wave dev set, docs/accuracy.md), is therefore, to the map's isotropic point, the
+    # echo of a point b / k further on: the map's peak moves by about that (measured: 0.8-1.0 b / k
+    # here), the angle does not, and the stated region, as wide as the map's axial lobe, still holds
+    # the truth. The echo fit that places such a defect (imaging/multidefect.py ``echo_placed``) lets
+    # each path's amplitude turn with the receiver's bearing, which takes up most of the lag: the
+    # estimate moves by a quarter of that at most (measured: 0.13-0.23 b / k).
+    from imaging import multidefect
+
+    if not echo_placed:  # the map's peak itself, as every plane-wave defect was reported until 2026-12-06
+        monkeypatch.setattr(multidefect, "echo_placed", lambda model: bool(model.elements))
     wavenumber = 2 * math.pi * 85e3 / (C_M_S * 1000.0)  # rad / mm
     lag = 2.4
     estimates = {}
@@ -69,6 +78,18 @@ def test_a_scatterers_forward_phase_lag_reads_as_an_axial_move_that_its_region_c
         assert defect.region.contains(defect.axial_mm, defect.angle_deg, axial_mm, angle_deg, CIRCUMFERENCE_MM)
         estimates[b] = defect
     for b in (-lag, lag):
-        shift = estimates[b].axial_mm - estimates[0.0].axial_mm
-        assert 0.6 * abs(b) / wavenumber < math.copysign(1.0, b) * shift < 1.2 * abs(b) / wavenumber
+        shift = math.copysign(1.0, b) * (estimates[b].axial_mm - estimates[0.0].axial_mm)
+        if echo_placed:
+            assert abs(shift) < 0.25 * abs(b) / wavenumber
+        else:
+            assert 0.6 * abs(b) / wavenumber < shift < 1.2 * abs(b) / wavenumber
         assert abs(estimates[b].angle_deg - estimates[0.0].angle_deg) < 2.0
+
+
+def test_a_region_widened_to_hold_a_second_estimate_keeps_the_floors_margin_round_it():
+    region = Region(18.0, 9.0)
+    assert region.holding(-4.0, 2.0) == region  # already inside with its margin: unchanged
+    wider = region.holding(-20.0, 7.5)
+    assert wider.axial_half_mm == 20.0 + AXIAL_FLOOR_MM and wider.circumferential_half_mm == 7.5 + CIRC_FLOOR_MM
+    assert wider.contains(100.0, 90.0, 80.0, 90.0, 360.0) and not region.contains(100.0, 90.0, 80.0, 90.0, 360.0)
+    assert Region(400.0, 180.0, False, "not resolved").holding(30.0, 10.0).localized is False

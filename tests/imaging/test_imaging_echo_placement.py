@@ -1,0 +1,64 @@
+"""Where the map's peak is not trusted on its own: a defect placed by its echo fit. A sparse ring's always; any
+ring's on a record without end echoes, where the map leans on the path-length curvature across the ring and a
+directional scatterer's phase moves its peak along the axis (checked on the project's own FDTD, fullwave/)."""
+import dataclasses
+import math
+
+import pytest
+
+from fullwave.defects import Notch
+from fullwave.record import PipeModel, SimulationSpec, simulate
+from fullwave.transducers import RingLayout
+from imaging import multidefect
+from imaging.analysis import analyze
+from imaging.paths import PathModel
+from imaging.timing import surface_distance_mm
+
+MID_WALL_MM = math.pi * (114.6 - 4.0)
+
+
+def test_defects_are_echo_placed_on_a_sparse_ring_or_without_end_echoes_and_left_on_the_map_with_them():
+    absorbing = PathModel(400.0, MID_WALL_MM, 36.8)  # no ends modelled: the direct paths only
+    reflecting = dataclasses.replace(absorbing, near_end_mm=-300.0, far_end_mm=700.0,
+                                     near_reflection=1.0, far_reflection=1.0)
+    elements = dataclasses.replace(reflecting, tx_arcs_mm=tuple(k * MID_WALL_MM / 8 for k in range(8)))
+    assert len(reflecting.families()) == 9 and len(absorbing.families()) == 1
+    assert multidefect.echo_placed(absorbing)
+    assert not multidefect.echo_placed(reflecting)
+    assert multidefect.echo_placed(elements)
+    # An end too weak to keep its paths (an absorbing end measured at 0.01) leaves the direct paths alone.
+    weak = dataclasses.replace(reflecting, near_reflection=0.01, far_reflection=0.01)
+    assert multidefect.echo_placed(weak)
+
+
+@pytest.fixture(scope="module")
+def absorbing_pipe():
+    # The project's FDTD (shares no code with the imaging): 16 patches at 85 kHz, absorbing ends, a 1 mm grid.
+    spec = SimulationSpec(pipe=PipeModel(length_mm=600.0, ends="absorbing"),
+                          rings=RingLayout(tx_axial_mm=150.0, n_transducers=16, tx_rx_distance_mm=300.0),
+                          excitation_hz=85e3, cell_mm=1.0, n_samples=4000)
+    return spec, simulate(spec)
+
+
+def test_a_notch_without_end_echoes_is_placed_by_its_echoes_closer_than_the_maps_peak(absorbing_pipe, monkeypatch):
+    spec, baseline = absorbing_pipe
+    axial_mm, angle_deg = 100.0, 40.0
+    current = simulate(spec.with_changes(defects=(Notch(axial_mm=axial_mm, angle_deg=angle_deg),)))
+
+    def error(result) -> float:
+        d = result.defects[0]
+        return surface_distance_mm(d.axial_mm, d.angle_deg, axial_mm, angle_deg, current.circumference_mm)
+
+    placed = analyze(baseline, current, wall_mm=4.0)
+    assert len(placed.defects) == 1
+    # The map alone (as until 2026-12-06: only a sparse ring's defects were echo-placed) puts it towards the Rx ring.
+    monkeypatch.setattr(multidefect, "echo_placed", lambda model: bool(model.elements))
+    on_the_map = analyze(baseline, current, wall_mm=4.0)
+    assert on_the_map.defects[0].axial_mm > axial_mm + 10.0
+    assert error(placed) < 10.0
+    assert error(placed) < error(on_the_map) - 5.0
+    # Its stated region holds the truth and the map's peak (which of the two is nearer depends on the kind).
+    defect, peak = placed.defects[0], on_the_map.defects[0]
+    assert defect.region.contains(defect.axial_mm, defect.angle_deg, axial_mm, angle_deg, current.circumference_mm)
+    assert defect.region.contains(defect.axial_mm, defect.angle_deg, peak.axial_mm, peak.angle_deg,
+                                  current.circumference_mm)
