@@ -22,9 +22,12 @@ every true one is a false alarm.
 fullwave generate --held-out SEED COUNT --out DIR`` draws it (fullwave/heldout.py), in a table of
 its own, case by case (not in the dev + own totals; several sets also together).
 
-``--own-16-wall-mm 4`` images the own 16-transducer records (whose files, like a node's, carry no
-wall thickness) as a node configured with that wall, as docs/gateway.md asks for a 16-ring node
-(its wrap cannot be fitted; without it the wrap is pi x OD, 3.5 % longer than the own wave's).
+The own 16-transducer records (whose files, like a node's, carry no wall thickness) are imaged as a
+node configured with the wall they were simulated with (``--own-16-wall-mm``, default 4 mm), as
+docs/gateway.md asks for a 16-ring node: its wrap cannot be fitted (its baseline is a plane wave),
+and without it the wrap is pi x OD, 3.5 % longer than the own wave's, which moves defects on records
+without end echoes by 20-50 mm. ``--own-16-wall-mm 0`` images them as the files are (the default
+until 2026-12-06). The 8-transducer records keep their files' missing wall: their wrap is fitted.
 
 The dev set is not in the repository: without it the benchmark says so and exits 0, except
 under CI=true (exit 1). Own cases missing from --own are listed as missing, not scored.
@@ -46,6 +49,7 @@ from collections.abc import Iterator  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from fullwave.record import PipeModel  # noqa: E402
 from imaging.analysis import analyze  # noqa: E402
 from imaging.formats import load_measurement  # noqa: E402
 from imaging.measurement import Measurement  # noqa: E402
@@ -56,6 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DEV = REPO.parent / "shared" / "fullwave-dev"
 DEFAULT_OWN = REPO.parent / "fullwave-own"
 MATCH_MM = 50.0  # a reported defect this close to a true one is that defect's detection
+OWN_WALL_MM = PipeModel().wall_mm  # the wall the own cases are simulated with: their wave wraps at pi (OD - wall)
 
 
 @dataclass
@@ -250,8 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-own", action="store_true", help="the dev set only")
     parser.add_argument("--no-thermometer", action="store_true",
                         help="leave the stretch to the search even on strong changes (AssessSettings.thermometer)")
-    parser.add_argument("--own-16-wall-mm", type=float, default=None, metavar="MM",
-                        help="image the own 16-transducer records as a node configured with this wall thickness")
+    parser.add_argument("--own-16-wall-mm", type=float, default=OWN_WALL_MM, metavar="MM",
+                        help=f"image the own 16-transducer records as a node configured with this wall thickness "
+                             f"(default {OWN_WALL_MM:g}, the simulated wall; 0: as the files are, without)")
     parser.add_argument("--held-out", type=Path, nargs="+", default=[], metavar="DIR",
                         help="also score these sets (dev layout, e.g. python -m fullwave generate --held-out ...)")
     args = parser.parse_args(argv)
@@ -275,7 +281,8 @@ def main(argv: list[str] | None = None) -> int:
     missing: list[str] = []
     if not args.skip_own:
         source = own_from_cache(args.own_cache) if args.own_cache else own_from_files(args.own, missing)
-        own = [score("own", e, b, c, thermometer, args.own_16_wall_mm if e["transducers"] == 16 else None)
+        wall = args.own_16_wall_mm or None
+        own = [score("own", e, b, c, thermometer, wall if e["transducers"] == 16 else None)
                for e, b, c in source if wanted(e)]
     lines = table(dev, f"Dev set ({args.dev.name}, {len(dev)} cases)") if dev else []
     if own:

@@ -9,7 +9,9 @@ ends, 18 paths per receiver, +1 degC): the multipath map alone on the pipeline's
 grid (cached tables), one local 1 mm x 1 deg peak refinement, and a whole
 ``imaging.pipeline.assess`` with default settings for a record with a notch and one without
 (one baseline), and with a library of 24 baselines (the gateway's default library size).
-Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). Numba kernels are
+Target: assess <= 40 ms (20 measurements/s including ~5 ms of storage). ``--ends absorbing`` times
+the same on a pipe without end echoes (direct paths only, each defect then placed by its echo fit).
+Numba kernels are
 used when installed; PIPESENTRY_NUMBA=0 times the numpy fallback. ``--power-sum`` times it with
 the groups' powers added (``joint_groups=False``, the default until 2026-12-05) instead of their
 joint projection.
@@ -91,14 +93,15 @@ def eight_ring_records(seed: int = 3) -> tuple[Measurement, Measurement, Measure
             record({"temperature_c": 20.5}))
 
 
-def mock_records(seed: int = 2) -> tuple[Measurement, Measurement, Measurement, list[Measurement]]:
+def mock_records(seed: int = 2, ends: str = "reflecting") -> tuple[Measurement, Measurement, Measurement,
+                                                                  list[Measurement]]:
     """(baseline at 20 degC, a notch at 200 mm 90 deg at 21 degC, no defect at 21 degC, a library of 24
-    baselines at 14.5..26 degC): reflecting ends, noise."""
+    baselines at 14.5..26 degC): ``ends``, noise."""
     rng = np.random.default_rng(seed)
     noise = AcquisitionSpec().noise_v_rms
 
     def record(defects, temperature_c):
-        scn = NodeScenario(node_id="bench", pipe=PipeSpec(ends="reflecting", wall_mm=WALL_MM),
+        scn = NodeScenario(node_id="bench", pipe=PipeSpec(ends=ends, wall_mm=WALL_MM),
                            acquisition=AcquisitionSpec(noise_v_rms=noise), defects=defects)
         volts = simulate_volts(scn, elapsed_s=0.0, temperature_c=temperature_c, rng=rng)
         codes, vpc = quantise_volts(volts, scn.acquisition.adc_bits, scn.acquisition.adc_full_scale_v)
@@ -135,7 +138,7 @@ def paper(args) -> None:
 
 
 def multipath(args) -> None:
-    base, notch, quiet, library = mock_records()
+    base, notch, quiet, library = mock_records(ends=args.ends)
     joint = not args.power_sum
     settings = AssessSettings(wall_mm=WALL_MM, joint_groups=joint)
     grid = default_grid("multipath", base.tx_rx_distance_mm, base.rx_angles_deg)
@@ -157,7 +160,7 @@ def multipath(args) -> None:
     for fn in timings.values():
         fn()  # warm: tables, memo of the baseline's direct arrival
     which = "groups added in power" if args.power_sum else "default AssessSettings"
-    print(f"\nall-paths imaging (mock node, reflecting ends, +1 degC, {which}), one thread, "
+    print(f"\nall-paths imaging (mock node, {args.ends} ends, +1 degC, {which}), one thread, "
           f"numba kernels: {'yes' if gather.compiled() else 'no (numpy fallback)'}")
     print(f"  first map incl. building the gather tables: {cold_ms:8.1f} ms")
     medians = {}
@@ -208,6 +211,9 @@ def main() -> None:
     parser.add_argument("--power-sum", action="store_true",
                         help="the all-paths part with the groups' powers added, AssessSettings(joint_groups=False), "
                              "as before 2026-12-05 (docs/imaging.md)")
+    parser.add_argument("--ends", choices=("reflecting", "absorbing"), default="reflecting",
+                        help="the mock pipe's ends in the all-paths part (absorbing: no end echoes, each defect "
+                             "placed by its echo fit, imaging/multidefect.py echo_placed)")
     args = parser.parse_args()
     if not args.skip_paper:
         paper(args)
