@@ -423,7 +423,7 @@ def echo_placed(model: PathModel) -> bool:
     defect below ECHO_PLACED_MAX_DI. Without end echoes the map's axial position rests on the
     path-length curvature across the ring, where the map's isotropic point leaves a notch, whose
     phase turns with the scattering angle, 9-32 mm towards the Rx ring (full-wave 16-ring records);
-    its echoes, followed six times round the pipe with a first-order pattern, place it closer (21 of
+    its echoes, followed six times round the pipe with a first-order pattern, place it closer (22 of
     25 held-out notches; median 14.9 -> 6.9 mm). A scatterer nearly as strong as the direct arrival
     (the light and near-rigid masses, DI 0.65-0.93) is beyond that single-scattering point: placed,
     9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak.
