@@ -406,17 +406,17 @@ def find_defects(
         # Each is re-located with the others' echoes removed, a dropped leftover's included: its
         # fit takes off what the isotropic model leaves of the defect that made it.
         found = _confirmed(search, _refine(search, fitted, fits, reported), rings)
-    if echo_placed(scene.model):
-        # Placed jointly with everything else the record holds, the faint maxima at a ring the search ruled
-        # out included: a change at a ring on a defect's line otherwise pulls the defect along it.
-        others = rings + faint_rings
-        found = [_echo_fitted(search, item, others + [f for f in found if f is not item])
-                 if scene.model.elements or item.estimate.di < ECHO_PLACED_MAX_DI else item for item in found]
+    # Placed jointly with everything else the record holds, the faint maxima at a ring the search ruled
+    # out included: a change at a ring on a defect's line otherwise pulls the defect along it.
+    others = rings + faint_rings
+    found = [_echo_fitted(search, item, others + [f for f in found if f is not item])
+             if echo_placed(scene.model, item.estimate.di) else item for item in found]
     return first, found, first_peak
 
 
-def echo_placed(model: PathModel) -> bool:
-    """Are defects imaged with ``model`` placed by their echo fit (``_echo_fitted``) rather than left on the map's peak?
+def echo_placed(model: PathModel, di: float) -> bool:
+    """Is a defect of peak ``di`` imaged with ``model`` placed by its echo fit (``_echo_fitted``) rather
+    than left on the map's peak?
 
     A sparse Tx ring's (modelled element by element, imaging/paths.py), and any ring's whose record
     holds only the direct paths (no end echoes: absorbing or unknown ends); on a dense ring only a
@@ -429,7 +429,7 @@ def echo_placed(model: PathModel) -> bool:
     9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak.
     With end echoes the map's crossing paths fix the position (reflecting 16-ring notches 0.4-2.2 mm
     median). docs/imaging.md, "A dense ring's defect without end echoes placed by its echoes"."""
-    return model.elements or len(model.families()) == 1
+    return model.elements or (len(model.families()) == 1 and di < ECHO_PLACED_MAX_DI)
 
 
 def explained_by_defects(residual: np.ndarray, scene: Scene, found: list[Found]) -> float:

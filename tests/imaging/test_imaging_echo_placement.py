@@ -23,12 +23,17 @@ def test_defects_are_echo_placed_on_a_sparse_ring_or_without_end_echoes_and_left
                                      near_reflection=1.0, far_reflection=1.0)
     elements = dataclasses.replace(reflecting, tx_arcs_mm=tuple(k * MID_WALL_MM / 8 for k in range(8)))
     assert len(reflecting.families()) == 9 and len(absorbing.families()) == 1
-    assert multidefect.echo_placed(absorbing)
-    assert not multidefect.echo_placed(reflecting)
-    assert multidefect.echo_placed(elements)
+    notch_di, mass_di = 0.2, 0.9  # full-wave 16-ring notches image at 0.02-0.42, masses at 0.65-0.93
+    assert multidefect.echo_placed(absorbing, notch_di)
+    assert not multidefect.echo_placed(reflecting, notch_di)
+    assert multidefect.echo_placed(elements, notch_di)
     # An end too weak to keep its paths (an absorbing end measured at 0.01) leaves the direct paths alone.
     weak = dataclasses.replace(reflecting, near_reflection=0.01, far_reflection=0.01)
-    assert multidefect.echo_placed(weak)
+    assert multidefect.echo_placed(weak, notch_di)
+    # A scatterer nearly as strong as the direct arrival keeps a dense ring's map peak; a sparse ring's is placed.
+    assert not multidefect.echo_placed(absorbing, mass_di)
+    assert not multidefect.echo_placed(absorbing, multidefect.ECHO_PLACED_MAX_DI)
+    assert multidefect.echo_placed(elements, mass_di)
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +57,7 @@ def test_a_notch_without_end_echoes_is_placed_by_its_echoes_closer_than_the_maps
     placed = analyze(baseline, current, wall_mm=4.0)
     assert len(placed.defects) == 1
     # The map alone (as until 2026-12-06: only a sparse ring's defects were echo-placed) puts it towards the Rx ring.
-    monkeypatch.setattr(multidefect, "echo_placed", lambda model: bool(model.elements))
+    monkeypatch.setattr(multidefect, "echo_placed", lambda model, di: bool(model.elements))
     on_the_map = analyze(baseline, current, wall_mm=4.0)
     assert on_the_map.defects[0].axial_mm > axial_mm + 10.0
     assert error(placed) < 10.0

@@ -154,7 +154,7 @@ def test_groups_projected_jointly_place_a_point_the_power_sum_pulls_towards_the_
     from imaging import multidefect
 
     if not echo_placed:  # the maps' peaks themselves
-        monkeypatch.setattr(multidefect, "echo_placed", lambda model: bool(model.elements))
+        monkeypatch.setattr(multidefect, "echo_placed", lambda model, di: bool(model.elements))
     base, cur = baseline_and_scatterers([(80.0, 10.0, 0.05)], noise_rms=5e-4, seed=2)
     errors = []
     for joint in (False, True):

@@ -67,7 +67,7 @@ def test_a_scatterers_forward_phase_lag_reads_as_an_axial_move_on_the_map_that_t
     from imaging import multidefect
 
     if not echo_placed:  # the map's peak itself, as every plane-wave defect was reported until 2026-12-06
-        monkeypatch.setattr(multidefect, "echo_placed", lambda model: bool(model.elements))
+        monkeypatch.setattr(multidefect, "echo_placed", lambda model, di: bool(model.elements))
     wavenumber = 2 * math.pi * 85e3 / (C_M_S * 1000.0)  # rad / mm
     lag = 2.4
     estimates = {}
