@@ -16,7 +16,7 @@ is then to the map's peak, shown in brackets). A reported defect farther than MA
 every true one is a false alarm.
 
     .venv/bin/python bench/bench_fullwave.py [--dev DIR] [--own DIR | --own-cache DIR] [--cases PATTERN ...] [--no-thermometer]
-                                             [--own-16-wall-mm MM] [--held-out DIR ...]
+                                             [--own-16-wall-mm MM] [--threshold DI] [--held-out DIR ...]
 
 ``--held-out DIR ...`` also scores each set in the dev set's layout that neither holds, as ``python -m
 fullwave generate --held-out SEED COUNT --out DIR`` draws it (fullwave/heldout.py), in a table of
@@ -51,6 +51,7 @@ from pathlib import Path  # noqa: E402
 
 from fullwave.record import PipeModel  # noqa: E402
 from imaging.analysis import analyze  # noqa: E402
+from imaging.detection import default_threshold  # noqa: E402
 from imaging.formats import load_measurement  # noqa: E402
 from imaging.measurement import Measurement  # noqa: E402
 from imaging.pipeline import Assessment  # noqa: E402
@@ -110,11 +111,11 @@ def class_of(entry: dict) -> tuple[str, str]:
 
 
 def score(source: str, entry: dict, baseline: Measurement, current: Measurement, thermometer: bool = True,
-          wall_mm: float | None = None) -> Scored:
-    """``wall_mm``: the configured wall for a file that carries none."""
+          wall_mm: float | None = None, threshold: float | None = None) -> Scored:
+    """``wall_mm``: the configured wall for a file that carries none; ``threshold`` None: the default."""
     started = time.perf_counter()
     wall = current.wall_mm if current.wall_mm is not None else wall_mm
-    result: Assessment = analyze(baseline, current, wall_mm=wall, thermometer=thermometer)
+    result: Assessment = analyze(baseline, current, wall_mm=wall, thermometer=thermometer, threshold=threshold)
     elapsed = (time.perf_counter() - started) * 1e3
     klass, ring = class_of(entry)
     circ = current.circumference_mm
@@ -258,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--own-16-wall-mm", type=float, default=OWN_WALL_MM, metavar="MM",
                         help=f"image the own 16-transducer records as a node configured with this wall thickness "
                              f"(default {OWN_WALL_MM:g}, the simulated wall; 0: as the files are, without)")
+    parser.add_argument("--threshold", type=float, default=None, metavar="DI",
+                        help="detection threshold instead of the method's default (imaging/detection.py)")
     parser.add_argument("--held-out", type=Path, nargs="+", default=[], metavar="DIR",
                         help="also score these sets (dev layout, e.g. python -m fullwave generate --held-out ...)")
     args = parser.parse_args(argv)
@@ -276,13 +279,14 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     load = os.getloadavg()[0]
     thermometer = not args.no_thermometer
-    dev = [score("dev", e, b, c, thermometer) for e, b, c in dev_cases(args.dev) if wanted(e)]
+    threshold = args.threshold
+    dev = [score("dev", e, b, c, thermometer, threshold=threshold) for e, b, c in dev_cases(args.dev) if wanted(e)]
     own: list[Scored] = []
     missing: list[str] = []
     if not args.skip_own:
         source = own_from_cache(args.own_cache) if args.own_cache else own_from_files(args.own, missing)
         wall = args.own_16_wall_mm or None
-        own = [score("own", e, b, c, thermometer, wall if e["transducers"] == 16 else None)
+        own = [score("own", e, b, c, thermometer, wall if e["transducers"] == 16 else None, threshold)
                for e, b, c in source if wanted(e)]
     lines = table(dev, f"Dev set ({args.dev.name}, {len(dev)} cases)") if dev else []
     if own:
@@ -291,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += table(dev + own, f"Dev + own ({len(dev) + len(own)} cases)")
     held_out: list[Scored] = []
     for held_out_dir in args.held_out:
-        rows = [score("held-out", e, b, c, thermometer) for e, b, c in dev_cases(held_out_dir) if wanted(e)]
+        rows = [score("held-out", e, b, c, thermometer, threshold=threshold) for e, b, c in dev_cases(held_out_dir) if wanted(e)]
         if rows:
             lines += table(rows, f"Held-out ({held_out_dir.name}, {len(rows)} cases)") + case_lines(rows)
         held_out += rows
@@ -302,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(lines))
     if missing:
         print(f"own cases not found in {args.own} (not scored): {len(missing)}: {', '.join(missing)}")
-    print(f"run time {time.perf_counter() - started:.0f} s, load average at start {load:.1f} "
+    used = f"{threshold:g}" if threshold is not None else f"{default_threshold('multipath', 'analytic'):g} (the default)"
+    print(f"threshold {used}; run time {time.perf_counter() - started:.0f} s, load average at start {load:.1f} "
           f"({os.cpu_count()} cores)")
     return 0
 
