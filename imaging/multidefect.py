@@ -38,7 +38,10 @@ angle) explains as well (``_Search.ring_instead``): along a receiver's line the 
 and the joint map can place a ring's change tens of mm from it. The
 strongest maximum of all is treated alike when it lies on the span's end: fitted, and the next peak
 is sought as the first defect; it is reported only when nothing located crosses the threshold after
-it (a change at a ring is still a change). A last pass re-locates
+it and stands out of what the ring's fit leaves (no rival as high elsewhere: a sound pipe 3 degC
+warmer than its baseline, uncompensated, leaves a flat map at 0.2 of the ring's change once that is
+fitted, which a threshold of 0.01 would otherwise report as an unlocalized defect); a change at a
+ring is still a change. A last pass re-locates
 each defect (within REFINE_RADIUS_MM) with the others' echoes, those maxima's included, removed; a
 later defect it moves into a ring's near field is dropped.
 
@@ -376,8 +379,11 @@ def find_defects(
             residual = search.original - sum(fits)
             continue
         item = search.found(values, di_map, estimate)
-        if found and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
-            break  # a later peak with a rival as high elsewhere: what the fits leave, not a new defect
+        if fitted and (item.runner_up_di or 0.0) >= UNRESOLVED_PEAK_RATIO * estimate.di:
+            # A later peak with a rival as high elsewhere: what the fits leave (a defect's or a change
+            # at a ring's), not a new defect. After a change at a ring that is all the search stops on
+            # before the first located defect; the tests below weigh a peak against defects found.
+            break
         with_item = search.fits(fitted + [item])
         ring = search.ring_instead(fitted, item, with_item) if found else None
         if ring is not None:  # a change at a ring, imaged along its line: treated as a maximum at the ring
