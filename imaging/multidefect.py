@@ -435,7 +435,7 @@ def echo_placed(model: PathModel, di: float) -> bool:
     9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak.
     With end echoes the map's crossing paths fix the position (reflecting 16-ring notches 0.4-2.2 mm
     median). docs/imaging.md, "A dense ring's defect without end echoes placed by its echoes"."""
-    return model.elements or (len(model.families()) == 1 and di < ECHO_PLACED_MAX_DI)
+    return bool(model.elements) or (len(model.families()) == 1 and di < ECHO_PLACED_MAX_DI)
 
 
 def explained_by_defects(residual: np.ndarray, scene: Scene, found: list[Found]) -> float:
