@@ -117,6 +117,9 @@ ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is 
 # 8-ring notches came closer but two notches and a near-rigid mass went further (docs/imaging.md, "A forward
 # lag fitted on sparse rings: measured, not yet the default").
 FORWARD_LAGS_RAD: tuple[float, ...] = (0.0,)
+ECHO_RIVAL_WAVELENGTHS = 2.0  # the echo fit's profile is searched this far either side of where it placed a defect
+ECHO_RIVAL_MARGIN = 0.1  # ... for a local minimum leaving at most (1 + this) x the best: a rival position
+ECHO_RIVAL_MIN_WAVELENGTHS = 0.5  # ... at least this far from the placed one (closer: the same minimum's flank)
 ECHO_FIT_ANGLE_STEP_DEG = 2.5  # ... then turned round the pipe within half a receiver pitch, at this step
 ECHO_PLACED_MAX_DI = 0.5  # a dense ring's defect without end echoes is echo-placed only below this DI: a scatterer
 #                          nearly as strong as the direct arrival is beyond the fit's single-scattering point (full-
@@ -139,6 +142,7 @@ class Found:
     runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
     map_peak: Estimate | None = None  # the map's peak, when the position comes from the echo fit instead
     forward_lag_rad: float = 0.0  # its echoes' forward lag b (1 - cos psi), fitted with its position (sparse rings)
+    axial_rivals_mm: tuple[float, ...] = ()  # where along its line its echoes fit nearly as well (``_echo_rivals``)
 
     @property
     def peak(self) -> Estimate:
@@ -515,7 +519,8 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     full-wave free-end mass 26-30 mm off); the echoes themselves, round the pipe six times, place it
     within 3-6 mm. On a dense ring's record without end echoes it places the full-wave 16-ring notches
     closer than the map does (``echo_placed``); the echoes circle the pipe, so this needs the wrap
-    the wave travels (``wall_mm``)."""
+    the wave travels (``wall_mm``). The fit's further minima nearly as deep within two wavelengths are kept
+    on the defect (``_echo_rivals``), for its region to hold them."""
     estimate = item.estimate
     region = localization_region(peak_confidence(item.di_map, estimate, circumference_mm=scene.circumference_mm,
                                                  runner_up_di=item.runner_up_di),
@@ -545,8 +550,40 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
         z0, z1, z2 = z_best - half, z_best, z_best + half
     offset = parabolic_offset(-unexplained(z0, lag), -unexplained(z1, lag), -unexplained(z2, lag))  # the vertex
     axial = float(np.clip(z1 + half * offset, lo, hi))
+    rivals = _echo_rivals(scene, axial, lambda z: unexplained(z, lag))
     return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate,
-                               forward_lag_rad=lag)
+                               forward_lag_rad=lag, axial_rivals_mm=rivals)
+
+
+def _echo_rivals(scene: Scene, axial_mm: float, unexplained: Callable[[float], float]) -> tuple[float, ...]:
+    """Positions along a placed defect's line, within ECHO_RIVAL_WAVELENGTHS of ``axial_mm``, where the echo fit
+    (``unexplained``) has another local minimum leaving at most (1 + ECHO_RIVAL_MARGIN) x the best, at least
+    ECHO_RIVAL_MIN_WAVELENGTHS away: a cycle skip. Steps of ECHO_FIT_STEP_MM from ``axial_mm``; a local
+    minimum within twice the margin is tried half a step either way before it is judged.
+
+    A burst of a few cycles fits its own copy a wavelength of path later nearly as well, and an end echo's
+    path changes by twice an axial move: on an 8-ring with free ends a notch 48 mm from the Tx ring
+    (held-out full-wave draw) left 1.04 of the best at 40 mm and the best at 90, and was reported 40 mm
+    off with a 27 mm region. Which minimum is the defect the record does not say; the region holds both
+    (imaging/pipeline.py)."""
+    wavelength = scene.velocity_m_s * MM_PER_M / scene.excitation_hz
+    first = float(scene.grid.axial_mm[0]) + EDGE_MM
+    last = float(scene.grid.axial_mm[-1]) - EDGE_MM
+    count = math.ceil(ECHO_RIVAL_WAVELENGTHS * wavelength / ECHO_FIT_STEP_MM)
+    zs = [z for z in axial_mm + ECHO_FIT_STEP_MM * np.arange(-count - 1, count + 2) if first <= z <= last]
+    values = [unexplained(float(z)) for z in zs]
+    best = min(values)
+    rivals = []
+    for k in range(1, len(zs) - 1):
+        if not (values[k] <= values[k - 1] and values[k] <= values[k + 1]
+                and values[k] <= (1.0 + 2.0 * ECHO_RIVAL_MARGIN) * best):
+            continue
+        z, value = min(((float(zs[k]) + d, unexplained(float(zs[k]) + d) if d else values[k])
+                        for d in (-ECHO_FIT_STEP_MM / 2, 0.0, ECHO_FIT_STEP_MM / 2)), key=lambda zv: zv[1])
+        best = min(best, value)
+        rivals.append((z, value))
+    return tuple(z for z, value in rivals if value <= (1.0 + ECHO_RIVAL_MARGIN) * best
+                 and abs(z - axial_mm) >= ECHO_RIVAL_MIN_WAVELENGTHS * wavelength)
 
 
 def _echo_fit_angle(item: Found, unexplained_by: Unexplained, n_rx: int) -> Found:

@@ -287,6 +287,8 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
         if f.map_peak is not None:  # placed by its echoes: the map's peak stays inside its region
             arc = signed_arc_mm(np.array(f.map_peak.angle_deg - f.estimate.angle_deg), current.circumference_mm)
             region = region.holding(f.map_peak.axial_mm - f.estimate.axial_mm, float(arc))
+            for rival in f.axial_rivals_mm:  # ... and so do the places its echoes fit nearly as well
+                region = region.holding(rival - f.estimate.axial_mm, 0.0)
         defects.append(Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di, conf, f.severity, region))
     return first, peak, defects, explained
 

@@ -64,7 +64,8 @@ class Region:
         estimate with the floors' margin round it (AXIAL_FLOOR_MM, CIRC_FLOOR_MM). A defect placed by
         its echoes (imaging/multidefect.py ``echo_placed``) keeps its map's peak inside its region:
         which of the two is nearer the truth depends on the defect's kind (full-wave 16-ring notches
-        without end echoes: the echoes; light masses: the map), which the record does not tell."""
+        without end echoes: the echoes; light masses: the map), which the record does not tell; and so
+        the places along its line where its echoes fit nearly as well (``Found.axial_rivals_mm``)."""
         return dataclasses.replace(
             self, axial_half_mm=max(self.axial_half_mm, abs(axial_offset_mm) + AXIAL_FLOOR_MM),
             circumferential_half_mm=max(self.circumferential_half_mm, abs(arc_offset_mm) + CIRC_FLOOR_MM))

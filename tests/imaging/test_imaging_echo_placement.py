@@ -3,10 +3,12 @@ ring's on a record without end echoes, where the map leans on the path-length cu
 directional scatterer's phase moves its peak along the axis (checked on the project's own FDTD, fullwave/)."""
 import dataclasses
 import math
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
-from fullwave.defects import Notch
+from fullwave.defects import Mass, Notch
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging import multidefect
@@ -67,3 +69,57 @@ def test_a_notch_without_end_echoes_is_placed_by_its_echoes_closer_than_the_maps
     assert defect.region.contains(defect.axial_mm, defect.angle_deg, axial_mm, angle_deg, current.circumference_mm)
     assert defect.region.contains(defect.axial_mm, defect.angle_deg, peak.axial_mm, peak.angle_deg,
                                   current.circumference_mm)
+
+
+def _line(rival_mm: float, rival_left: float):
+    """A scene stand-in (what ``_echo_rivals`` reads: the wave's speed and frequency, the imaged span) and a
+    fit profile along a defect's line: its best at 90 mm, a second minimum at ``rival_mm`` leaving
+    ``rival_left`` x the best, each ~20 mm wide (what the fits left along an 8-ring's notch, held-out draw)."""
+    scene = SimpleNamespace(velocity_m_s=3260.0, excitation_hz=75e3, grid=SimpleNamespace(axial_mm=np.arange(0.0, 401.0, 4.0)))
+
+    def unexplained(z: float) -> float:
+        return min(1.0 + ((z - 90.0) / 20.0) ** 2, rival_left + ((z - rival_mm) / 20.0) ** 2)
+
+    return scene, unexplained
+
+
+def test_a_second_minimum_of_the_echo_fit_nearly_as_deep_a_wavelength_away_is_a_rival():
+    scene, unexplained = _line(40.0, 1.04)  # lambda = 43.5 mm: 50 mm away, 4 % shallower
+    (rival,) = multidefect._echo_rivals(scene, 90.0, unexplained)
+    assert rival == pytest.approx(40.0, abs=multidefect.ECHO_FIT_STEP_MM / 2)
+
+
+@pytest.mark.parametrize(("rival_mm", "rival_left"), [
+    (40.0, 1.3),  # clearly shallower: the fit tells them apart
+    (300.0, 1.0),  # as deep but beyond two wavelengths: not a cycle skip of this placement
+    (75.0, 1.0),  # within half a wavelength: the same minimum's flank
+])
+def test_a_shallower_far_or_adjoining_minimum_is_no_rival(rival_mm, rival_left):
+    scene, unexplained = _line(rival_mm, rival_left)
+    assert multidefect._echo_rivals(scene, 90.0, unexplained) == ()
+
+
+def test_a_sparse_rings_defect_whose_echoes_fit_as_well_a_wavelength_away_states_a_region_holding_both(monkeypatch):
+    # The project's FDTD: 8 patches at 75 kHz, free ends, a near-rigid mass 70 mm from the Tx ring. Its echo
+    # fit has further minima nearly as deep (measured 14 and 150 mm, placed at 74 mm, 4.6 mm off): the stated
+    # region holds them, as it holds the map's peak.
+    rivals: list[tuple[float, ...]] = []
+    found = multidefect._echo_rivals
+
+    def spy(scene, axial_mm, unexplained):
+        rivals.append(found(scene, axial_mm, unexplained))
+        return rivals[-1]
+
+    monkeypatch.setattr(multidefect, "_echo_rivals", spy)
+    spec = SimulationSpec(pipe=PipeModel(length_mm=600.0, ends="reflecting"),
+                          rings=RingLayout(tx_axial_mm=150.0, n_transducers=8, tx_rx_distance_mm=300.0),
+                          excitation_hz=75e3, cell_mm=2.0, n_samples=4000)
+    mass = Mass(axial_mm=70.0, angle_deg=150.0)
+    result = analyze(simulate(spec), simulate(spec.with_changes(defects=(mass,))), wall_mm=4.0)
+    (defect,) = result.defects
+    assert surface_distance_mm(defect.axial_mm, defect.angle_deg, mass.axial_mm, mass.angle_deg, MID_WALL_MM) < 10.0
+    (placed,) = rivals
+    assert placed, "the fit's further minima are rivals"
+    assert all(abs(z - defect.axial_mm) >= multidefect.ECHO_RIVAL_MIN_WAVELENGTHS * 3130.0 / 75.0 for z in placed)
+    assert defect.region.localized
+    assert defect.region.axial_half_mm >= max(abs(z - defect.axial_mm) for z in placed)
