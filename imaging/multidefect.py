@@ -84,7 +84,6 @@ from imaging.multipath import local_multipath_pixels, multipath_pixels
 from imaging.paths import PathModel
 from imaging.region import localization_region
 from imaging.scene import Scene
-from imaging.timing import MM_PER_M
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.15  # ... and score at least this fraction of the first one's DI
@@ -467,16 +466,20 @@ def _near_a_ring(scene: Scene, estimate: Estimate) -> bool:
     a maximum there is what changes on a few receivers' direct arrival (a found defect's forward
     shadow, a transducer's gain), measured on full-wave records 8-14 mm before the Rx ring in line
     with a receiver, not a scatterer located between the rings."""
-    near_mm = NEAR_RING_WAVELENGTHS * scene.velocity_m_s * MM_PER_M / scene.excitation_hz
+    near_mm = NEAR_RING_WAVELENGTHS * scene.wavelength_mm
     ring_mm = (0.0, float(scene.model.tx_rx_distance_mm))
     return _on_the_span_edge(scene.grid, estimate) or min(abs(estimate.axial_mm - z) for z in ring_mm) < near_mm
 
 
 def _on_the_span_edge(grid: Grid, estimate: Estimate) -> bool:
     """Does the peak sit on either end of the imaged axial span (the Tx or the Rx ring), within EDGE_MM?"""
-    lo = float(grid.axial_mm[0])
-    hi = float(grid.axial_mm[-1])
-    return estimate.axial_mm <= lo + EDGE_MM or estimate.axial_mm >= hi - EDGE_MM
+    first, last = _inside_the_span(grid)
+    return estimate.axial_mm <= first or estimate.axial_mm >= last
+
+
+def _inside_the_span(grid: Grid) -> tuple[float, float]:
+    """(first, last) axial position (mm) more than EDGE_MM inside either end of the imaged span."""
+    return float(grid.axial_mm[0]) + EDGE_MM, float(grid.axial_mm[-1]) - EDGE_MM
 
 
 Unexplained = Callable[[Found, int], float]  # what a fit with a defect there, echoes up to that order, leaves
@@ -528,8 +531,9 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     if not region.localized:
         return item
     span = min(ECHO_FIT_SPAN_MM, region.axial_half_mm)
-    lo = max(float(scene.grid.axial_mm[0]) + EDGE_MM, estimate.axial_mm - span)
-    hi = min(float(scene.grid.axial_mm[-1]) - EDGE_MM, estimate.axial_mm + span)
+    first, last = _inside_the_span(scene.grid)
+    lo = max(first, estimate.axial_mm - span)
+    hi = min(last, estimate.axial_mm + span)
     if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
         return item
     step = (hi - lo) / max(2, round((hi - lo) / ECHO_FIT_STEP_MM))
@@ -566,9 +570,8 @@ def _echo_rivals(scene: Scene, axial_mm: float, unexplained: Callable[[float], f
     (held-out full-wave draw) left 1.04 of the best at 40 mm and the best at 90, and was reported 40 mm
     off with a 27 mm region. Which minimum is the defect the record does not say; the region holds both
     (imaging/pipeline.py)."""
-    wavelength = scene.velocity_m_s * MM_PER_M / scene.excitation_hz
-    first = float(scene.grid.axial_mm[0]) + EDGE_MM
-    last = float(scene.grid.axial_mm[-1]) - EDGE_MM
+    wavelength = scene.wavelength_mm
+    first, last = _inside_the_span(scene.grid)
     count = math.ceil(ECHO_RIVAL_WAVELENGTHS * wavelength / ECHO_FIT_STEP_MM)
     zs = [z for z in axial_mm + ECHO_FIT_STEP_MM * np.arange(-count - 1, count + 2) if first <= z <= last]
     values = [unexplained(float(z)) for z in zs]

@@ -24,6 +24,7 @@ from imaging.dimap import default_window_samples
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel
+from imaging.timing import MM_PER_M
 
 
 class SceneError(ValueError):
@@ -96,6 +97,11 @@ class Scene:
     @property
     def n_rx(self) -> int:
         return int(self.rx_angles_deg.size)
+
+    @property
+    def wavelength_mm(self) -> float:
+        """The T(0,1) wavelength at the excitation frequency (the record's wave speed)."""
+        return self.velocity_m_s * MM_PER_M / self.excitation_hz
 
     @property
     def circumference_mm(self) -> float:

@@ -72,11 +72,10 @@ def test_a_notch_without_end_echoes_is_placed_by_its_echoes_closer_than_the_maps
 
 
 def _line(rival_mm: float, rival_left: float):
-    """A scene stand-in (what ``_echo_rivals`` reads: the wave's speed and frequency, the imaged span) and a
-    fit profile along a defect's line: its best at 90 mm, a second minimum at ``rival_mm`` leaving
+    """A scene stand-in (what ``_echo_rivals`` reads: the wavelength, 3260 m/s at 75 kHz, and the imaged span)
+    and a fit profile along a defect's line: its best at 90 mm, a second minimum at ``rival_mm`` leaving
     ``rival_left`` x the best, each ~20 mm wide (what the fits left along an 8-ring's notch, held-out draw)."""
-    scene = SimpleNamespace(velocity_m_s=3260.0, excitation_hz=75e3,
-                            grid=SimpleNamespace(axial_mm=np.arange(0.0, 401.0, 4.0)))
+    scene = SimpleNamespace(wavelength_mm=3260.0e3 / 75e3, grid=SimpleNamespace(axial_mm=np.arange(0.0, 401.0, 4.0)))
 
     def unexplained(z: float) -> float:
         return min(1.0 + ((z - 90.0) / 20.0) ** 2, rival_left + ((z - rival_mm) / 20.0) ** 2)
