@@ -18,16 +18,19 @@ demo: $(STAMP)
 
 # Two pytest-xdist workers (WORKERS=1 for one process): most of an e2e test's time is spent waiting
 # on real processes, so two share two cores well. Every test has its own files, ports, PostgreSQL
-# schema or database, so none depends on running alone.
+# schema or database, so none depends on running alone. One BLAS thread per worker (as the benchmarks
+# run): two workers each starting OpenBLAS's two threads on two cores spin against each other
+# (tests/imaging/test_strong_change.py on 2 workers: 64 s with its threads, 38 s with one, 2026-12-07).
 WORKERS ?= 2
+ONE_THREAD := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 test: $(STAMP) lint
 	bash scripts/ensure-test-deps.sh
-	$(BIN)/python -m pytest -n $(WORKERS) --dist worksteal
+	$(ONE_THREAD) $(BIN)/python -m pytest -n $(WORKERS) --dist worksteal
 
 # The unit tests only (no real processes, PostgreSQL or browser): about a minute.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not e2e and not postgres and not browser"
+	$(ONE_THREAD) $(BIN)/python -m pytest -q -m "not e2e and not postgres and not browser"
 
 # The chaos suite at full size (tests/chaos: more kills and outages, the 16-node soak); `make test` runs
 # it reduced. Needs root for the tmpfs mounts of the disk-full cases. About 10 minutes on 2 cores.

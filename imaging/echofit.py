@@ -25,9 +25,8 @@ from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
-from scipy import fft as sp_fft
 
-from imaging.fitkernels import normal_equations, synthesise
+from imaging.fitkernels import group_columns, normal_equations, synthesise
 from imaging.paths import coherence_groups, element_scattering_cosines, scalar_paths, stacked_paths
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
@@ -86,7 +85,7 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     ``lags_rad`` (one per position, default none): each path's carrier lags by lag (1 - cos psi),
     psi its scattering angle (``element_scattering_cosines``): a scatterer whose forward field lags
     its backward one, as a notch's does (docs/imaging.md, "A forward lag fitted on sparse rings").
-    Built as impulse trains convolved with the two burst shapes (one FFT each).
+    Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
     size = shapes.shape[1]
@@ -96,27 +95,13 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     groups, length, weight = stacked_paths(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])  # [P, m, pos]
     k = np.floor((length / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
-    lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
-    width = n + size
-    impulses = np.zeros((n_rx, n_pos, n_groups, 2 if lagged else 1, width))
     p_idx, m_idx, pos_idx = np.nonzero(keep)
-    at = (m_idx, pos_idx, groups[p_idx], k[keep] + size)
-    if lagged:
+    c, s = weight[keep], None
+    if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
         cos_psi = element_scattering_cosines(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])
-        phase = np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi)  # [P, m, pos]
-        np.add.at(impulses[..., 0, :], at, (weight * np.cos(phase))[keep])
-        np.add.at(impulses[..., 1, :], at, (weight * np.sin(phase))[keep])
-    else:
-        np.add.at(impulses[..., 0, :], at, weight[keep])
-    n_fft = sp_fft.next_fast_len(width + size, real=True)
-    burst, quadrature = sp_fft.rfft(shapes, n_fft, axis=-1)
-    spec = sp_fft.rfft(impulses, n_fft, axis=-1)
-    if lagged:  # sin(x - phi) = sin x cos phi - cos x sin phi; cos(x - phi) = cos x cos phi + sin x sin phi
-        spec = np.stack([spec[..., 0, :] * burst - spec[..., 1, :] * quadrature,
-                         spec[..., 0, :] * quadrature + spec[..., 1, :] * burst], axis=-2)
-    else:
-        spec = spec * np.stack([burst, quadrature])
-    return sp_fft.irfft(spec, n_fft, axis=-1)[..., size:size + n]
+        phase = (np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, pos]
+        c, s = c * np.cos(phase), c * np.sin(phase)
+    return group_columns(m_idx, pos_idx, groups[p_idx], k[keep], c, s, shapes, (n_rx, n_pos, n_groups, n))
 
 
 def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: int) -> np.ndarray:
@@ -149,7 +134,7 @@ def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[f
         big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
         unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
         coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(columns.shape[1], n_basis))
-    fitted = (coef[:, :, None] * columns).reshape(n_rx, n_pos, -1, n).sum(axis=2)
+    fitted = np.einsum("mpan,mpa->mpn", waves.reshape(n_rx, n_pos, -1, n), coef.reshape(n_rx, n_pos, -1), optimize=True)
     return [np.ascontiguousarray(fitted[:, p]) for p in range(n_pos)]
 
 

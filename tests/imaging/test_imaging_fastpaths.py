@@ -74,6 +74,28 @@ def test_compiled_echo_fit_sums_equal_the_numpy_sums(data):
                                rtol=1e-12, atol=1e-12)
 
 
+@needs_numba
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_compiled_group_columns_equal_the_fft_convolution(data):
+    # Paths starting before, inside, across the end of and after a short record, several to a group,
+    # with and without a carrier shift.
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    shapes, _table = _partial_products(1e6, 85e3, 5)
+    size = shapes.shape[1]
+    n_rx, n_pos, n_groups = data.draw(st.integers(1, 3)), data.draw(st.integers(1, 2)), data.draw(st.integers(1, 4))
+    n, n_paths = data.draw(st.integers(1, 3 * size)), data.draw(st.integers(0, 30))
+    rx, pos, group = (rng.integers(0, k, n_paths) for k in (n_rx, n_pos, n_groups))
+    starts = rng.integers(-size + 1, n, n_paths)  # as group_waves keeps them: overlapping the record
+    c = rng.standard_normal(n_paths)
+    s = rng.standard_normal(n_paths) if data.draw(st.booleans()) else None
+    out_shape = (n_rx, n_pos, n_groups, n)
+    fast = fitkernels.group_columns(rx, pos, group, starts, c, s, shapes, out_shape)
+    slow = fitkernels.group_columns_numpy(rx, pos, group, starts, c, s, shapes, out_shape)
+    assert fast.shape == slow.shape == (n_rx, n_pos, n_groups, 2, n)
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12 * max(1.0, float(np.abs(c).sum())))
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(random_problem())
 def test_numpy_fallback_map_matches_the_literal_sum(problem):
