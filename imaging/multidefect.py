@@ -119,6 +119,9 @@ FORWARD_LAGS_RAD: tuple[float, ...] = (0.0,)
 ECHO_RIVAL_WAVELENGTHS = 2.0  # the echo fit's profile is searched this far either side of where it placed a defect
 ECHO_RIVAL_MARGIN = 0.1  # ... for a local minimum leaving at most (1 + this) x the best: a rival position
 ECHO_RIVAL_MIN_WAVELENGTHS = 0.5  # ... at least this far from the placed one (closer: the same minimum's flank)
+ECHO_START_RATIO = 0.85  # the map's local maxima this close to its peak's height within that reach (and half a
+#                         receiver pitch round the pipe) are further lines the defect is placed along
+ECHO_STARTS = 2  # ... at most this many, highest first; the line whose fit leaves least wins
 ECHO_FIT_ANGLE_STEP_DEG = 2.5  # ... then turned round the pipe within half a receiver pitch, at this step
 ECHO_PLACED_MAX_DI = 0.5  # a dense ring's defect without end echoes is echo-placed only below this DI: a scatterer
 #                          nearly as strong as the direct arrival is beyond the fit's single-scattering point (full-
@@ -523,7 +526,13 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     within 3-6 mm. On a dense ring's record without end echoes it places the full-wave 16-ring notches
     closer than the map does (``echo_placed``); the echoes circle the pipe, so this needs the wrap
     the wave travels (``wall_mm``). The fit's further minima nearly as deep within two wavelengths are kept
-    on the defect (``_echo_rivals``), for its region to hold them."""
+    on the defect (``_echo_rivals``), for its region to hold them.
+
+    The map's other maxima nearly as high within the fit's reach (``_echo_starts``) are further lines, each
+    searched alike round its own maximum; the line whose fit leaves least places the defect. Near an 8-ring's
+    Tx ring the map's peak can lie beside the defect's own maximum: a held-out near-rigid mass 83 mm from
+    the Tx ring peaked 40 mm and 7 deg away, its own maximum (0.92 of the peak) 9 mm from it; along that
+    maximum's line the echoes leave 0.54 of what they leave along the peak's (reported 3.8 mm off, was 40.5)."""
     estimate = item.estimate
     region = localization_region(peak_confidence(item.di_map, estimate, circumference_mm=scene.circumference_mm,
                                                  runner_up_di=item.runner_up_di),
@@ -532,16 +541,59 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
         return item
     span = min(ECHO_FIT_SPAN_MM, region.axial_half_mm)
     first, last = _inside_the_span(scene.grid)
-    lo = max(first, estimate.axial_mm - span)
-    hi = min(last, estimate.axial_mm + span)
-    if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
+    own = _line_fit(item, estimate, span, first, last, unexplained_by)
+    if own is None:
         return item
+    line = own
+    for start in _echo_starts(scene, item):
+        other = _line_fit(item, start, span, first, last, unexplained_by)
+        if other is not None and _moves_to(other, line, own, scene.wavelength_mm):
+            line = other
+    rivals = _echo_rivals(scene, line.axial_mm, line.along_its_lag)
+    return dataclasses.replace(item, estimate=dataclasses.replace(line.start, axial_mm=line.axial_mm, di=estimate.di),
+                               map_peak=estimate, forward_lag_rad=line.lag, axial_rivals_mm=rivals)
+
+
+@dataclass(frozen=True)
+class _LineFit:
+    """A defect placed along one line (``start``'s angle) by its echoes: where, with which forward lag, what the
+    fit leaves there, and the fit along the line (``unexplained(z, lag)``, remembered)."""
+
+    start: Estimate
+    axial_mm: float
+    lag: float
+    least: float
+    unexplained: Callable[[float, float], float]
+    inside: bool  # placed inside the searched stretch, not on its end (where the fit goes on falling)
+
+    def along_its_lag(self, axial_mm: float) -> float:
+        return self.unexplained(axial_mm, self.lag)
+
+
+def _moves_to(other: _LineFit, best: _LineFit, own: _LineFit, wavelength_mm: float) -> bool:
+    """Whether a further line's fit (``other``) places the defect instead of the ``best`` so far: its least lies
+    inside its stretch (on an end the fit goes on falling beyond it), it leaves less than the best by more than
+    ECHO_RIVAL_MARGIN (within it, it is a rival: which one is the defect the record does not say), and it lies
+    at least ECHO_RIVAL_MIN_WAVELENGTHS along the axis from where the peak's own line (``own``) placed it
+    (nearer, it is the same place seen at another angle, which the angle search turns the defect to)."""
+    return (other.inside and (1.0 + ECHO_RIVAL_MARGIN) * other.least < best.least
+            and abs(other.axial_mm - own.axial_mm) >= ECHO_RIVAL_MIN_WAVELENGTHS * wavelength_mm)
+
+
+def _line_fit(item: Found, start: Estimate, span: float, first: float, last: float,
+              unexplained_by: Unexplained) -> _LineFit | None:
+    """``_echo_fit_axial``'s search along ``start``'s line within ``span`` of it (None: too little of the line
+    inside the imaged span, ``first`` to ``last``)."""
+    lo = max(first, start.axial_mm - span)
+    hi = min(last, start.axial_mm + span)
+    if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
+        return None
     step = (hi - lo) / max(2, round((hi - lo) / ECHO_FIT_STEP_MM))
     left: dict[tuple[float, float], float] = {}
 
     def unexplained(z: float, lag: float) -> float:
         if (z, lag) not in left:
-            at = Found(dataclasses.replace(estimate, axial_mm=z), item.di_map, item.severity, forward_lag_rad=lag)
+            at = Found(dataclasses.replace(start, axial_mm=z), item.di_map, item.severity, forward_lag_rad=lag)
             left[z, lag] = unexplained_by(at, PATTERN_ORDERS)
         return left[z, lag]
 
@@ -554,9 +606,31 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
         z0, z1, z2 = z_best - half, z_best, z_best + half
     offset = parabolic_offset(-unexplained(z0, lag), -unexplained(z1, lag), -unexplained(z2, lag))  # the vertex
     axial = float(np.clip(z1 + half * offset, lo, hi))
-    rivals = _echo_rivals(scene, axial, lambda z: unexplained(z, lag))
-    return dataclasses.replace(item, estimate=dataclasses.replace(estimate, axial_mm=axial), map_peak=estimate,
-                               forward_lag_rad=lag, axial_rivals_mm=rivals)
+    return _LineFit(start, axial, lag, min(left.values()), unexplained, inside=lo < axial < hi)
+
+
+def _echo_starts(scene: Scene, item: Found) -> list[Estimate]:
+    """Further lines to place ``item`` along: the local maxima of its coarse map (the whole map's) within the echo fit's reach of
+    the map's peak (ECHO_RIVAL_WAVELENGTHS along the axis, half a receiver pitch round the pipe), at least
+    ECHO_RIVAL_MIN_WAVELENGTHS from it along the axis, off its line by a map pixel at least, and at
+    ECHO_START_RATIO of the peak's pixel or more, highest first (at most ECHO_STARTS)."""
+    di_map, estimate = item.di_map, item.estimate
+    grid = di_map.grid
+    wavelength = scene.wavelength_mm
+    first, last = _inside_the_span(grid)
+    dz = grid.axial_mm[:, None] - estimate.axial_mm
+    arc_deg = np.abs(np.mod(grid.angle_deg[None, :] - estimate.angle_deg + 180.0, 360.0) - 180.0)
+    reach = ((np.abs(dz) <= ECHO_RIVAL_WAVELENGTHS * wavelength) & (arc_deg <= 180.0 / scene.n_rx)
+             & (grid.axial_mm[:, None] >= first) & (grid.axial_mm[:, None] <= last))
+    if not reach.any():
+        return []
+    top = float(np.max(di_map.pixels[reach]))
+    apart = np.abs(dz) >= ECHO_RIVAL_MIN_WAVELENGTHS * wavelength  # nearer: where the angle search turns it anyway
+    across = arc_deg >= grid.angle_step_deg  # on the peak's own line the rival scan has stepped the fit already
+    wanted = reach & apart & across & (di_map.pixels >= ECHO_START_RATIO * top)
+    maxima = [(i, j) for i, j in _local_maxima(di_map.pixels, grid.wraps_in_angle, di_map.pixels.size) if wanted[i, j]]
+    return [dataclasses.replace(estimate, axial_mm=float(grid.axial_mm[i]), angle_deg=float(grid.angle_deg[j]))
+            for i, j in maxima[:ECHO_STARTS]]
 
 
 def _echo_rivals(scene: Scene, axial_mm: float, unexplained: Callable[[float], float]) -> tuple[float, ...]:

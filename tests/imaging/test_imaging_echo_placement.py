@@ -13,6 +13,7 @@ from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging import multidefect
 from imaging.analysis import analyze
+from imaging.localize import Estimate
 from imaging.paths import PathModel
 from imaging.timing import surface_distance_mm
 
@@ -97,6 +98,24 @@ def test_a_second_minimum_of_the_echo_fit_nearly_as_deep_a_wavelength_away_is_a_
 def test_a_shallower_far_or_adjoining_minimum_is_no_rival(rival_mm, rival_left):
     scene, unexplained = _line(rival_mm, rival_left)
     assert multidefect._echo_rivals(scene, 90.0, unexplained) == ()
+
+
+def _placed(axial_mm: float, least: float, inside: bool = True) -> multidefect._LineFit:
+    """A defect placed along some line at ``axial_mm``, the fit leaving ``least`` there."""
+    return multidefect._LineFit(Estimate(axial_mm, 0.0, 0.1), axial_mm, 0.0, least,
+                                lambda z, lag: least, inside)
+
+
+@pytest.mark.parametrize(("other", "moves"), [
+    (_placed(85.0, 0.54), True),  # decisively better, 38 mm from the peak line's place (a held-out near-rigid mass)
+    (_placed(85.0, 0.95), False),  # within the margin: a rival, which the record does not tell apart
+    (_placed(110.0, 0.54), False),  # 13 mm along the axis: the same place, the angle search's to turn
+    (_placed(85.0, 0.54, inside=False), False),  # on its stretch's end: the fit falls on beyond it
+])
+def test_a_further_line_places_the_defect_only_elsewhere_inside_its_stretch_and_decisively_better(other, moves):
+    own = _placed(123.0, 1.0)  # where the map's peak line placed it; lambda = 43.5 mm
+    assert multidefect._moves_to(other, own, own, 3260.0e3 / 75e3) is moves
+    assert not multidefect._moves_to(other, _placed(150.0, 0.5), own, 3260.0e3 / 75e3)  # a better line already won
 
 
 def test_a_sparse_rings_defect_whose_echoes_fit_as_well_a_wavelength_away_states_a_region_holding_both(monkeypatch):

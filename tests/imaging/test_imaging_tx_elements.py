@@ -12,6 +12,7 @@ from fullwave.transducers import RingLayout
 from imaging import gather, multidefect
 from imaging.analysis import analyze
 from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, hann_burst, reference_amplitude
+from imaging.dimap import DIMap
 from imaging.echofit import fit_echoes, fit_smooth_echoes, group_waves
 from imaging.features import residual_feature
 from imaging.grid import Grid
@@ -219,13 +220,61 @@ def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_forward_lag_its
     monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
     monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
     unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
-    item = multidefect.Found(Estimate(194.0, 50.0, 0.1), None, 0.0)  # type: ignore[arg-type]
+    item = multidefect.Found(Estimate(194.0, 50.0, 0.1), _bumps(scene.grid, [(194.0, 50.0, 1.0)]), 0.0)
     placed = multidefect._echo_fit_axial(scene, item, unexplained)
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
     assert placed.forward_lag_rad == lag_rad and placed.map_peak == item.estimate
     off = dataclasses.replace(placed, estimate=dataclasses.replace(placed.estimate, angle_deg=62.0))
     turned = multidefect._echo_fit_angle(off, unexplained, scene.n_rx)  # turned back with the lag it was placed with
     assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0) and turned.forward_lag_rad == lag_rad
+
+
+def _bumps(grid: Grid, peaks: list[tuple[float, float, float]]) -> DIMap:
+    """A DI map on ``grid`` with a narrow bump of the given height at each (axial mm, angle deg, height)."""
+    dz = grid.axial_mm[:, None, None] - np.array([p[0] for p in peaks])
+    da = np.mod(grid.angle_deg[None, :, None] - np.array([p[1] for p in peaks]) + 180.0, 360.0) - 180.0
+    heights = np.array([p[2] for p in peaks])
+    return DIMap(np.sum(heights * np.exp(-0.5 * ((dz / 4.0) ** 2 + (da / 2.0) ** 2)), axis=-1), grid, "multipath", 1)
+
+
+def test_the_maps_other_maxima_within_the_echo_fits_reach_are_further_lines_to_place_a_defect_along():
+    # A wavelength is 41.7 mm here (3130 m/s, 75 kHz): the reach is 83 mm along the axis, 22.5 deg round
+    # the pipe (half the pitch); a start lies half a wavelength (21 mm) from the peak at least.
+    scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    di_map = _bumps(scene.grid, [(200.0, 45.0, 1.0),
+                                 (152.0, 52.5, 0.9), (260.0, 37.5, 0.86),  # starts, highest first
+                                 (100.0, 45.0, 0.95),  # beyond the reach along the axis
+                                 (200.0, 75.0, 0.95),  # beyond half a pitch
+                                 (212.0, 45.0, 0.95),  # the peak's own flank
+                                 (240.0, 60.0, 0.8)])  # too low
+    starts = multidefect._echo_starts(scene, multidefect.Found(Estimate(200.0, 45.0, 0.1), di_map, 0.0))
+    assert [(s.axial_mm, s.angle_deg) for s in starts] == [(152.0, 52.5), (260.0, 37.5)]
+    assert all(s.di == 0.1 for s in starts)  # the map's DI stays the defect's
+
+
+@pytest.mark.parametrize("second_maximum", [True, False])
+def test_a_sparse_rings_defect_is_placed_along_the_maps_other_maximum_where_its_echoes_fit_better(
+        monkeypatch, second_maximum):
+    # Echoes of a scatterer at 180 mm 50 deg; the map's peak lies 52 mm further on and 9 deg round, beyond
+    # the reach of the search along its own line (its region, stubbed: +-30 mm). A second maximum of the
+    # map at 0.9 of the peak near the scatterer is a further line: along it the echoes fit, and the
+    # defect is placed there; without it the defect stays on the peak's line.
+    scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    waves = group_waves(scene, [(180.0, 50.0)], 5000)[:, 0]
+    record = np.einsum("mgsn,gs->mn", waves, np.random.default_rng(13).standard_normal(waves.shape[1:3]))
+    monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
+    monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
+    unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
+    peaks = [(232.0, 41.25, 1.0)] + ([(184.0, 48.75, 0.9)] if second_maximum else [])
+    item = multidefect.Found(Estimate(232.0, 41.25, 0.1), _bumps(scene.grid, peaks), 0.0)
+    placed = multidefect._echo_fit_axial(scene, item, unexplained)
+    assert placed.map_peak == item.estimate and placed.estimate.di == 0.1
+    if second_maximum:
+        assert placed.estimate.angle_deg == 48.75
+        assert placed.estimate.axial_mm == pytest.approx(180.0, abs=2.0)
+    else:
+        assert placed.estimate.angle_deg == 41.25
+        assert placed.estimate.axial_mm >= 232.0 - 30.0
 
 
 @pytest.mark.parametrize(("axial_mm", "angle_deg"), [(100.0, 45.0), (200.0, 200.0)])
