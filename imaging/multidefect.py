@@ -121,7 +121,7 @@ ECHO_RIVAL_MARGIN = 0.1  # ... for a local minimum leaving at most (1 + this) x 
 ECHO_RIVAL_MIN_WAVELENGTHS = 0.5  # ... at least this far from the placed one (closer: the same minimum's flank)
 ECHO_START_RATIO = 0.85  # the map's local maxima this close to its peak's height within that reach (and half a
 #                         receiver pitch round the pipe) are further lines the defect is placed along
-ECHO_STARTS = 2  # ... at most this many, highest first; the line whose fit leaves least wins
+ECHO_STARTS = 2  # ... at most this many, highest first; one places the defect where its fit is decisively better
 ECHO_FIT_ANGLE_STEP_DEG = 2.5  # ... then turned round the pipe within half a receiver pitch, at this step
 ECHO_PLACED_MAX_DI = 0.5  # a dense ring's defect without end echoes is echo-placed only below this DI: a scatterer
 #                          nearly as strong as the direct arrival is beyond the fit's single-scattering point (full-
@@ -529,7 +529,8 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     on the defect (``_echo_rivals``), for its region to hold them.
 
     The map's other maxima nearly as high within the fit's reach (``_echo_starts``) are further lines, each
-    searched alike round its own maximum; the line whose fit leaves least places the defect. Near an 8-ring's
+    searched alike round its own maximum; one places the defect instead where its fit is decisively better
+    elsewhere along the axis (``_moves_to``). Near an 8-ring's
     Tx ring the map's peak can lie beside the defect's own maximum: a held-out near-rigid mass 83 mm from
     the Tx ring peaked 40 mm and 7 deg away, its own maximum (0.92 of the peak) 9 mm from it; along that
     maximum's line the echoes leave 0.54 of what they leave along the peak's (reported 3.8 mm off, was 40.5)."""
@@ -610,10 +611,10 @@ def _line_fit(item: Found, start: Estimate, span: float, first: float, last: flo
 
 
 def _echo_starts(scene: Scene, item: Found) -> list[Estimate]:
-    """Further lines to place ``item`` along: the local maxima of its coarse map (the whole map's) within the echo fit's reach of
-    the map's peak (ECHO_RIVAL_WAVELENGTHS along the axis, half a receiver pitch round the pipe), at least
-    ECHO_RIVAL_MIN_WAVELENGTHS from it along the axis, off its line by a map pixel at least, and at
-    ECHO_START_RATIO of the peak's pixel or more, highest first (at most ECHO_STARTS)."""
+    """Further lines to place ``item`` along: local maxima of its whole coarse map that lie within the echo
+    fit's reach of the map's peak (ECHO_RIVAL_WAVELENGTHS along the axis, half a receiver pitch round the
+    pipe), at least ECHO_RIVAL_MIN_WAVELENGTHS from it along the axis, off its line by a map pixel at least,
+    and at ECHO_START_RATIO of the highest pixel within reach or more; highest first, at most ECHO_STARTS."""
     di_map, estimate = item.di_map, item.estimate
     grid = di_map.grid
     wavelength = scene.wavelength_mm
