@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import interpolate as sp_interpolate
 from scipy import signal as sp_signal
-from test_imaging_multipath import random_problem
+from test_imaging_multipath import assert_equals_the_literal_map, random_problem
 
 import imaging.multipath as multipath
 from imaging import fitkernels, gather
@@ -106,13 +106,7 @@ def test_numpy_fallback_map_matches_the_literal_sum(problem):
         fast = multipath_pixels(feature, scene, normalise=normalise)
     finally:
         multipath.accumulate = original
-    literal = literal_multipath_pixels(feature, scene, normalise=normalise)
-    # The fast map sums in float32: its error scales with the terms summed, not with what is left after they
-    # cancel (a one-pixel map at 1e-4 of its terms was 8e-5 off relatively); the map of the feature's
-    # magnitudes, every term in phase, bounds them.
-    in_phase = literal_multipath_pixels(np.abs(feature).astype(feature.dtype), scene, normalise=normalise)
-    scale = max(float(np.abs(literal).max()), float(np.abs(in_phase).max()), 1e-12)
-    np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * scale)
+    assert_equals_the_literal_map(fast, feature, scene, normalise)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
