@@ -14,6 +14,7 @@ from imaging import fitkernels, gather
 from imaging.arrivals import analytic_matched, analytic_signal, hann_burst, matched_filter, reference_amplitude
 from imaging.echofit import (
     _partial_products,
+    burst_pair,
     fit_echoes,
     fit_smooth_echoes,
     literal_fit_echoes,
@@ -81,7 +82,7 @@ def test_compiled_group_columns_equal_the_fft_convolution(data):
     # Paths starting before, inside, across the end of and after a short record, several to a group,
     # with and without a carrier shift.
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    shapes, _table = _partial_products(1e6, 85e3, 5)
+    shapes = np.stack(burst_pair(1e6, 85e3, 5))
     size = shapes.shape[1]
     n_rx, n_pos, n_groups = data.draw(st.integers(1, 3)), data.draw(st.integers(1, 2)), data.draw(st.integers(1, 4))
     n, n_paths = data.draw(st.integers(1, 3 * size)), data.draw(st.integers(0, 30))
