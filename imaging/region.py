@@ -22,14 +22,29 @@ defect is, only that something changed: the region is then ``localized`` False, 
 and its axial half-width covers the whole imaged length (a strong scatterer seen by a sparse
 ring, full-wave: a near-rigid point mass on an 8-transducer ring); with a competing peak the
 circumferential half-width is half the circumference too.
+
+A sparse ring's defect imaged without end echoes (imaging/paths.py ``sparse_ring``: the Tx ring
+launches its circumferential order N; neither end echoes back much, ``leans_to_receivers``) has
+its angle from the direct paths to the few receivers round the ring alone, and both the map and the echo fit lean towards the
+nearest receiver's line: full-wave 8-transducer records at 75 kHz (held-out draws) put defects 11
+to 17 deg off a line within 0-5 deg of it, sharply (the fit's own minimum there), while those
+imaged near the middle between two lines were within 5 mm of arc. An estimate near a line may so
+have been drawn from most of the half pitch either side; the region holds it (``receiver_lean_mm``):
+
+    circumferential_half >= CIRC_FLOOR_MM + RECEIVER_LEAN x (arc from the estimate to the
+                            middle between the two receivers' lines either side of it)
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from imaging.localize import Confidence
+from imaging.paths import PathModel
 
 COVERAGE = 0.9  # the region's stated probability of holding the truth
 AXIAL_FLOOR_MM = 6.0
@@ -38,6 +53,8 @@ AXIAL_PER_LOBE = 0.5
 CIRC_PER_LOBE = 0.5
 UNLOCALIZED_PEAK_RATIO = 0.95  # a competing peak this close to the estimate's: the position is not resolved
 UNLOCALIZED_LOBE_FRACTION = 0.6  # ... nor when the lobe covers this much of the imaged axial length
+RECEIVER_LEAN = 0.6  # of the arc to the middle between two receivers' lines a sparse ring's estimate may lean
+LEAN_END_REFLECTION = 0.3  # ... when both ends' fitted reflection is below this (absorbing ends fit 0.1, free 0.55)
 
 
 @dataclass(frozen=True)
@@ -70,6 +87,12 @@ class Region:
             self, axial_half_mm=max(self.axial_half_mm, abs(axial_offset_mm) + AXIAL_FLOOR_MM),
             circumferential_half_mm=max(self.circumferential_half_mm, abs(arc_offset_mm) + CIRC_FLOOR_MM))
 
+    def round_at_least(self, half_mm: float, circumference_mm: float) -> Region:
+        """This region with a circumferential half-width of at least ``half_mm`` (at most half the
+        circumference)."""
+        half = min(max(self.circumferential_half_mm, half_mm), circumference_mm / 2.0)
+        return dataclasses.replace(self, circumferential_half_mm=half)
+
     def as_dict(self) -> dict:
         return {
             "coverage": self.coverage,
@@ -100,4 +123,28 @@ def localization_region(confidence: Confidence, *, circumference_mm: float, axia
     return Region(axial, circ)
 
 
-__all__ = ["COVERAGE", "Region", "localization_region"]
+def leans_to_receivers(model: PathModel) -> bool:
+    """Does a defect imaged with ``model`` take its angle from a sparse ring's direct paths alone
+    (module docstring)? Its Tx ring is modelled element by element (imaging/paths.py) and neither
+    end echoes back more than LEAN_END_REFLECTION: a sparse ring's fit (imaging/ring_fit.py) gives
+    absorbing ends 0.1, not 0 (full-wave 8-transducer records), free ones 0.55."""
+    ends = [r for end, r in ((model.near_end_mm, model.near_reflection), (model.far_end_mm, model.far_reflection))
+            if end is not None]
+    return model.elements and all(r < LEAN_END_REFLECTION for r in ends)
+
+
+def receiver_lean_mm(angle_deg: float, rx_angles_deg: Sequence[float], circumference_mm: float) -> float:
+    """The circumferential half-width (mm) that holds a sparse ring's defect imaged without end
+    echoes at ``angle_deg`` (module docstring): CIRC_FLOOR_MM + RECEIVER_LEAN x the arc from it to the
+    middle between the receivers' lines (``rx_angles_deg``, those imaged) on either side of it. One
+    receiver: the middle is the opposite side."""
+    lines = np.sort(np.asarray(rx_angles_deg, dtype=np.float64) % 360.0)
+    if lines.size == 0:
+        raise ValueError("no receiver: the lean has no line")
+    gaps = np.diff(np.append(lines, lines[0] + 360.0))
+    middles = lines + gaps / 2.0
+    to_middle = float(np.min(np.abs((angle_deg - middles + 180.0) % 360.0 - 180.0)))
+    return CIRC_FLOOR_MM + RECEIVER_LEAN * to_middle * circumference_mm / 360.0
+
+
+__all__ = ["COVERAGE", "Region", "leans_to_receivers", "localization_region", "receiver_lean_mm"]

@@ -20,7 +20,7 @@ from imaging.localize import Estimate
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
 from imaging.paths import PathModel, element_scattering_cosines, incident_terms, ring_order_cutoff_hz, sparse_ring
 from imaging.pipeline import default_grid
-from imaging.region import Region
+from imaging.region import CIRC_FLOOR_MM, Region, leans_to_receivers, receiver_lean_mm
 from imaging.scene import Scene
 from imaging.timing import surface_distance_mm
 
@@ -291,6 +291,10 @@ def test_a_near_rigid_mass_seen_by_an_eight_ring_is_found_on_full_wave_physics(a
     assert result.defects, "the mass must be detected"
     best = result.defects[0]
     assert surface_distance_mm(best.axial_mm, best.angle_deg, axial_mm, angle_deg, MID_WALL_MM) < 10.0
+    # Its angle rests on the 8 receivers' direct paths alone: the region holds what it may have leant across.
+    lean = receiver_lean_mm(best.angle_deg, baseline.rx_angles_deg, current.circumference_mm)
+    assert best.region.circumferential_half_mm >= lean > CIRC_FLOOR_MM
+    assert best.region.contains(best.axial_mm, best.angle_deg, axial_mm, angle_deg, current.circumference_mm)
     # The plane-wave map with its groups' powers added (measured 181 and 189 mm off); projected on
     # jointly it found the mass at 200 mm 4.7 mm off, the one at 100 mm still 132 mm off.
     plane_scene = Scene.of(baseline, path_model_for(baseline, wall_mm=4.0, elements=False), grid,
@@ -317,11 +321,13 @@ def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(en
     assert model.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
     if ends == "absorbing":
         assert model.near_reflection <= 0.2 and model.far_reflection <= 0.2
+        assert leans_to_receivers(model)  # its defects' angle rests on the direct paths alone
         assert end_reflection_coefficients(baseline)[0] > 0.3  # what the envelope at the echo time reads
         no_ends = path_model_for(dataclasses.replace(baseline, pipe_length_mm=None))  # the direct wave alone
         assert no_ends.near_end_mm is None and no_ends.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
     else:
         assert model.near_reflection >= 0.5 and model.far_reflection >= 0.5
+        assert not leans_to_receivers(model)
     given = path_model_for(baseline, wall_mm=4.0)  # a wall given: its mid-wall is used, not fitted
     assert given.circumference_mm == pytest.approx(MID_WALL_MM, abs=1e-6)
 

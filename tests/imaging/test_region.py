@@ -1,11 +1,22 @@
 """The 90 % localization region: as wide as the map's main lobe says, and an honest flag when it says nothing."""
+import itertools
 import math
 
+import numpy as np
 import pytest
 
 from imaging.localize import Confidence
+from imaging.paths import PathModel
 from imaging.pipeline import AssessSettings, assess
-from imaging.region import AXIAL_FLOOR_MM, CIRC_FLOOR_MM, Region, localization_region
+from imaging.region import (
+    AXIAL_FLOOR_MM,
+    CIRC_FLOOR_MM,
+    RECEIVER_LEAN,
+    Region,
+    leans_to_receivers,
+    localization_region,
+    receiver_lean_mm,
+)
 from imaging.timing import surface_distance_mm
 from tests.support.synthetic import C_M_S, CIRCUMFERENCE_MM, baseline_and_scatterers
 
@@ -93,3 +104,43 @@ def test_a_region_widened_to_hold_a_second_estimate_keeps_the_floors_margin_roun
     assert wider.axial_half_mm == 20.0 + AXIAL_FLOOR_MM and wider.circumferential_half_mm == 7.5 + CIRC_FLOOR_MM
     assert wider.contains(100.0, 90.0, 80.0, 90.0, 360.0) and not region.contains(100.0, 90.0, 80.0, 90.0, 360.0)
     assert Region(400.0, 180.0, False, "not resolved").holding(30.0, 10.0).localized is False
+
+
+EIGHT_RX = np.arange(8) * 45.0
+
+
+def test_a_sparse_rings_estimate_on_a_receivers_line_may_have_leant_from_most_of_the_half_pitch():
+    on_the_line = receiver_lean_mm(90.0, EIGHT_RX, 360.0)
+    assert on_the_line == pytest.approx(CIRC_FLOOR_MM + RECEIVER_LEAN * 22.5)
+    assert receiver_lean_mm(112.5, EIGHT_RX, 360.0) == pytest.approx(CIRC_FLOOR_MM)  # midway: where it looks
+    between = [receiver_lean_mm(a, EIGHT_RX, 360.0) for a in np.arange(90.0, 112.6, 2.5)]
+    assert all(b > c for b, c in itertools.pairwise(between))  # narrower the further from the line
+    assert receiver_lean_mm(1.0, EIGHT_RX, 360.0) == pytest.approx(receiver_lean_mm(359.0, EIGHT_RX, 360.0))
+    assert receiver_lean_mm(90.0, EIGHT_RX, 720.0) - CIRC_FLOOR_MM == pytest.approx(2 * (on_the_line - CIRC_FLOOR_MM))
+
+
+def test_a_receiver_left_out_doubles_the_gap_its_neighbours_lean_across():
+    without_90 = EIGHT_RX[EIGHT_RX != 90.0]
+    assert receiver_lean_mm(90.0, without_90, 360.0) == pytest.approx(CIRC_FLOOR_MM)  # now the middle of a gap
+    assert receiver_lean_mm(60.0, without_90, 360.0) > receiver_lean_mm(60.0, EIGHT_RX, 360.0) + 10.0
+    with pytest.raises(ValueError, match="no receiver"):
+        receiver_lean_mm(0.0, [], 360.0)
+
+
+def test_a_region_held_to_a_lean_grows_round_the_pipe_only_and_never_past_half_of_it():
+    region = Region(18.0, 9.0)
+    assert region.round_at_least(5.0, 360.0) == region
+    assert region.round_at_least(19.5, 360.0) == Region(18.0, 19.5)
+    assert region.round_at_least(400.0, 360.0).circumferential_half_mm == 180.0
+
+
+@pytest.mark.parametrize(("tx_arcs_mm", "ends", "leans"), [
+    ((0.0, 45.0), (0.1, 0.1), True),  # a sparse ring's fit of absorbing ends
+    ((0.0, 45.0), None, True),  # ends not modelled: the direct paths alone
+    ((0.0, 45.0), (0.55, 0.1), False),  # one free end echoes back: its paths cross the direct ones
+    ((), (0.1, 0.1), False),  # a dense ring's plane wave: its map resolves the angle
+])
+def test_only_a_sparse_rings_defect_without_end_echoes_leans_to_a_receivers_line(tx_arcs_mm, ends, leans):
+    geometry = {} if ends is None else {"near_end_mm": -100.0, "far_end_mm": 500.0,
+                                        "near_reflection": ends[0], "far_reflection": ends[1]}
+    assert leans_to_receivers(PathModel(400.0, 360.0, 42.0, tx_arcs_mm=tx_arcs_mm, **geometry)) is leans
