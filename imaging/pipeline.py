@@ -43,7 +43,7 @@ from imaging.modal import axisymmetric_fraction, default_modal_orders, remove_lo
 from imaging.multidefect import explained_by_defects, find_defects
 from imaging.multipath import path_model_for
 from imaging.paths import signed_arc_mm
-from imaging.region import Region, leans_to_receivers, localization_region, receiver_lean_mm
+from imaging.region import Region, localization_region, receiver_lean, receiver_lean_mm
 from imaging.scene import Scene
 
 METHODS: tuple[str, ...] = ("multipath", "paper")
@@ -289,9 +289,11 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
             region = region.holding(f.map_peak.axial_mm - f.estimate.axial_mm, float(arc))
             for rival in f.axial_rivals_mm:  # ... and so do the places its echoes fit nearly as well
                 region = region.holding(rival - f.estimate.axial_mm, 0.0)
-        if leans_to_receivers(scene.model):  # a sparse ring's angle without end echoes leans to a receiver's line
-            lean = receiver_lean_mm(f.estimate.angle_deg, scene.rx_angles_deg[scene.rx_mask], current.circumference_mm)
-            region = region.round_at_least(lean, current.circumference_mm)
+        lean = receiver_lean(scene.model)
+        if lean:  # a sparse ring's angle leans to a receiver's line
+            half = receiver_lean_mm(f.estimate.angle_deg, scene.rx_angles_deg[scene.rx_mask], current.circumference_mm,
+                                    lean)
+            region = region.round_at_least(half, current.circumference_mm)
         defects.append(Defect(f.estimate.axial_mm, f.estimate.angle_deg, f.estimate.di, conf, f.severity, region))
     return first, peak, defects, explained
 

@@ -23,16 +23,20 @@ and its axial half-width covers the whole imaged length (a strong scatterer seen
 ring, full-wave: a near-rigid point mass on an 8-transducer ring); with a competing peak the
 circumferential half-width is half the circumference too.
 
-A sparse ring's defect imaged without end echoes (imaging/paths.py ``sparse_ring``: the Tx ring
-launches its circumferential order N; neither end echoes back much, ``leans_to_receivers``) has
-its angle from the direct paths to the few receivers round the ring alone, and both the map and the echo fit lean towards the
-nearest receiver's line: full-wave 8-transducer records at 75 kHz (held-out draws) put defects 11
-to 17 deg off a line within 0-5 deg of it, sharply (the fit's own minimum there), while those
-imaged near the middle between two lines were within 5 mm of arc. An estimate near a line may so
-have been drawn from most of the half pitch either side; the region holds it (``receiver_lean_mm``):
+A sparse ring's defect (imaging/paths.py ``sparse_ring``: the Tx ring launches its
+circumferential order N, modelled element by element) has its angle from the few receivers round
+the ring, and both the map and the echo fit lean towards the nearest receiver's line: full-wave
+8-transducer records at 75 kHz with absorbing ends (held-out draws) put defects 11 to 17 deg off a
+line within 0-5 deg of it, sharply (the fit's own minimum there), while those imaged near the middle
+between two lines were within 5 mm of arc but one (7.6). End echoes cross the direct paths and pin
+the angle in part: with free ends the largest such lean was 10 deg (a 1 kg mass reported on a line,
+9.8 mm of arc off). An estimate near a line may so have been drawn from much of the half pitch
+either side; the region holds it (``receiver_lean_mm``, with ``receiver_lean``'s factor):
 
-    circumferential_half >= CIRC_FLOOR_MM + RECEIVER_LEAN x (arc from the estimate to the
-                            middle between the two receivers' lines either side of it)
+    circumferential_half >= CIRC_FLOOR_MM + lean x (arc from the estimate to the middle between
+                            the two receivers' lines either side of it)
+    lean = RECEIVER_LEAN (0.6) without end echoes (both ends' fitted reflection below
+           LEAN_END_REFLECTION), RECEIVER_LEAN_WITH_ENDS (0.3) with them; 0 on a dense ring.
 """
 from __future__ import annotations
 
@@ -54,7 +58,8 @@ CIRC_PER_LOBE = 0.5
 UNLOCALIZED_PEAK_RATIO = 0.95  # a competing peak this close to the estimate's: the position is not resolved
 UNLOCALIZED_LOBE_FRACTION = 0.6  # ... nor when the lobe covers this much of the imaged axial length
 RECEIVER_LEAN = 0.6  # of the arc to the middle between two receivers' lines a sparse ring's estimate may lean
-LEAN_END_REFLECTION = 0.3  # ... when both ends' fitted reflection is below this (absorbing ends fit 0.1, free 0.55)
+RECEIVER_LEAN_WITH_ENDS = 0.3  # ... where an end echoes back (a fitted reflection of LEAN_END_REFLECTION or more)
+LEAN_END_REFLECTION = 0.3  # a sparse ring's fit gives absorbing ends 0.1 (not 0), free ones 0.55
 
 
 @dataclass(frozen=True)
@@ -123,28 +128,31 @@ def localization_region(confidence: Confidence, *, circumference_mm: float, axia
     return Region(axial, circ)
 
 
-def leans_to_receivers(model: PathModel) -> bool:
-    """Does a defect imaged with ``model`` take its angle from a sparse ring's direct paths alone
-    (module docstring)? Its Tx ring is modelled element by element (imaging/paths.py) and neither
-    end echoes back more than LEAN_END_REFLECTION: a sparse ring's fit (imaging/ring_fit.py) gives
-    absorbing ends 0.1, not 0 (full-wave 8-transducer records), free ones 0.55."""
+def receiver_lean(model: PathModel) -> float:
+    """How far a defect imaged with ``model`` may lean to a receiver's line, as a fraction of the arc
+    to the middle between two lines (module docstring): 0 for a dense ring's plane wave; for a sparse
+    ring's (modelled by its elements, imaging/paths.py) RECEIVER_LEAN, or RECEIVER_LEAN_WITH_ENDS where
+    an end echoes back LEAN_END_REFLECTION or more (imaging/ring_fit.py fits absorbing ends 0.1, not 0)."""
+    if not model.elements:
+        return 0.0
     ends = [r for end, r in ((model.near_end_mm, model.near_reflection), (model.far_end_mm, model.far_reflection))
             if end is not None]
-    return model.elements and all(r < LEAN_END_REFLECTION for r in ends)
+    return RECEIVER_LEAN_WITH_ENDS if any(r >= LEAN_END_REFLECTION for r in ends) else RECEIVER_LEAN
 
 
-def receiver_lean_mm(angle_deg: float, rx_angles_deg: Sequence[float], circumference_mm: float) -> float:
-    """The circumferential half-width (mm) that holds a sparse ring's defect imaged without end
-    echoes at ``angle_deg`` (module docstring): CIRC_FLOOR_MM + RECEIVER_LEAN x the arc from it to the
-    middle between the receivers' lines (``rx_angles_deg``, those imaged) on either side of it. One
-    receiver: the middle is the opposite side."""
+def receiver_lean_mm(angle_deg: float, rx_angles_deg: Sequence[float], circumference_mm: float,
+                     lean: float = RECEIVER_LEAN) -> float:
+    """The circumferential half-width (mm) that holds a sparse ring's defect imaged at ``angle_deg``
+    (module docstring): CIRC_FLOOR_MM + ``lean`` x the arc from it to the middle between the
+    receivers' lines (``rx_angles_deg``, those imaged) on either side of it. One receiver: the middle
+    is the opposite side."""
     lines = np.sort(np.asarray(rx_angles_deg, dtype=np.float64) % 360.0)
     if lines.size == 0:
         raise ValueError("no receiver: the lean has no line")
     gaps = np.diff(np.append(lines, lines[0] + 360.0))
     middles = lines + gaps / 2.0
     to_middle = float(np.min(np.abs((angle_deg - middles + 180.0) % 360.0 - 180.0)))
-    return CIRC_FLOOR_MM + RECEIVER_LEAN * to_middle * circumference_mm / 360.0
+    return CIRC_FLOOR_MM + lean * to_middle * circumference_mm / 360.0
 
 
-__all__ = ["COVERAGE", "Region", "leans_to_receivers", "localization_region", "receiver_lean_mm"]
+__all__ = ["COVERAGE", "Region", "localization_region", "receiver_lean", "receiver_lean_mm"]

@@ -20,7 +20,14 @@ from imaging.localize import Estimate
 from imaging.multipath import literal_multipath_pixels, local_multipath_pixels, multipath_pixels, path_model_for
 from imaging.paths import PathModel, element_scattering_cosines, incident_terms, ring_order_cutoff_hz, sparse_ring
 from imaging.pipeline import default_grid
-from imaging.region import CIRC_FLOOR_MM, Region, leans_to_receivers, receiver_lean_mm
+from imaging.region import (
+    CIRC_FLOOR_MM,
+    RECEIVER_LEAN,
+    RECEIVER_LEAN_WITH_ENDS,
+    Region,
+    receiver_lean,
+    receiver_lean_mm,
+)
 from imaging.scene import Scene
 from imaging.timing import surface_distance_mm
 
@@ -321,13 +328,13 @@ def test_a_sparse_rings_wrap_length_and_end_echoes_are_fitted_to_its_baseline(en
     assert model.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
     if ends == "absorbing":
         assert model.near_reflection <= 0.2 and model.far_reflection <= 0.2
-        assert leans_to_receivers(model)  # its defects' angle rests on the direct paths alone
+        assert receiver_lean(model) == RECEIVER_LEAN  # its defects' angle rests on the direct paths alone
         assert end_reflection_coefficients(baseline)[0] > 0.3  # what the envelope at the echo time reads
         no_ends = path_model_for(dataclasses.replace(baseline, pipe_length_mm=None))  # the direct wave alone
         assert no_ends.near_end_mm is None and no_ends.circumference_mm == pytest.approx(MID_WALL_MM, abs=1.0)
     else:
         assert model.near_reflection >= 0.5 and model.far_reflection >= 0.5
-        assert not leans_to_receivers(model)
+        assert receiver_lean(model) == RECEIVER_LEAN_WITH_ENDS  # the end echoes pin the angle in part
     given = path_model_for(baseline, wall_mm=4.0)  # a wall given: its mid-wall is used, not fitted
     assert given.circumference_mm == pytest.approx(MID_WALL_MM, abs=1e-6)
 

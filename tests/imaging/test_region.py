@@ -12,9 +12,10 @@ from imaging.region import (
     AXIAL_FLOOR_MM,
     CIRC_FLOOR_MM,
     RECEIVER_LEAN,
+    RECEIVER_LEAN_WITH_ENDS,
     Region,
-    leans_to_receivers,
     localization_region,
+    receiver_lean,
     receiver_lean_mm,
 )
 from imaging.timing import surface_distance_mm
@@ -134,13 +135,16 @@ def test_a_region_held_to_a_lean_grows_round_the_pipe_only_and_never_past_half_o
     assert region.round_at_least(400.0, 360.0).circumferential_half_mm == 180.0
 
 
-@pytest.mark.parametrize(("tx_arcs_mm", "ends", "leans"), [
-    ((0.0, 45.0), (0.1, 0.1), True),  # a sparse ring's fit of absorbing ends
-    ((0.0, 45.0), None, True),  # ends not modelled: the direct paths alone
-    ((0.0, 45.0), (0.55, 0.1), False),  # one free end echoes back: its paths cross the direct ones
-    ((), (0.1, 0.1), False),  # a dense ring's plane wave: its map resolves the angle
+@pytest.mark.parametrize(("tx_arcs_mm", "ends", "lean"), [
+    ((0.0, 45.0), (0.1, 0.1), RECEIVER_LEAN),  # a sparse ring's fit of absorbing ends: the direct paths alone
+    ((0.0, 45.0), None, RECEIVER_LEAN),  # ends not modelled
+    ((0.0, 45.0), (0.55, 0.1), RECEIVER_LEAN_WITH_ENDS),  # one free end echoes back: its paths cross the direct ones
+    ((), (0.1, 0.1), 0.0),  # a dense ring's plane wave: its map resolves the angle
 ])
-def test_only_a_sparse_rings_defect_without_end_echoes_leans_to_a_receivers_line(tx_arcs_mm, ends, leans):
+def test_a_sparse_rings_defect_leans_to_a_receivers_line_and_less_with_end_echoes(tx_arcs_mm, ends, lean):
     geometry = {} if ends is None else {"near_end_mm": -100.0, "far_end_mm": 500.0,
                                         "near_reflection": ends[0], "far_reflection": ends[1]}
-    assert leans_to_receivers(PathModel(400.0, 360.0, 42.0, tx_arcs_mm=tx_arcs_mm, **geometry)) is leans
+    assert receiver_lean(PathModel(400.0, 360.0, 42.0, tx_arcs_mm=tx_arcs_mm, **geometry)) == lean
+    assert RECEIVER_LEAN_WITH_ENDS < RECEIVER_LEAN
+    with_ends = receiver_lean_mm(90.0, EIGHT_RX, 360.0, RECEIVER_LEAN_WITH_ENDS)
+    assert CIRC_FLOOR_MM < with_ends < receiver_lean_mm(90.0, EIGHT_RX, 360.0)
