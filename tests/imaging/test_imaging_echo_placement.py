@@ -119,9 +119,10 @@ def test_a_further_line_places_the_defect_only_elsewhere_inside_its_stretch_and_
 
 
 def test_a_sparse_rings_defect_whose_echoes_fit_as_well_a_wavelength_away_states_a_region_holding_both(monkeypatch):
-    # The project's FDTD: 8 patches at 75 kHz, free ends, a near-rigid mass 70 mm from the Tx ring. Its echo
-    # fit has further minima nearly as deep (measured 14 and 150 mm, placed at 74 mm, 4.6 mm off): the stated
-    # region holds them, as it holds the map's peak.
+    # The project's FDTD: 8 patches at 75 kHz, free ends, a near-rigid mass 120 mm from the Tx ring. Its echo
+    # fit has a further minimum nearly as deep (measured at 53 mm, placed at 120.6 mm, 1.1 mm off): the stated
+    # region holds it, as it holds the map's peak. (The mass at 70 mm 150 deg used here before had its rivals
+    # only while the receiver check took three receivers in its shadow for faulty, imaging/health.py.)
     rivals: list[tuple[float, ...]] = []
     found = multidefect._echo_rivals
 
@@ -133,7 +134,7 @@ def test_a_sparse_rings_defect_whose_echoes_fit_as_well_a_wavelength_away_states
     spec = SimulationSpec(pipe=PipeModel(length_mm=600.0, ends="reflecting"),
                           rings=RingLayout(tx_axial_mm=150.0, n_transducers=8, tx_rx_distance_mm=300.0),
                           excitation_hz=75e3, cell_mm=2.0, n_samples=4000)
-    mass = Mass(axial_mm=70.0, angle_deg=150.0)
+    mass = Mass(axial_mm=120.0, angle_deg=100.0)
     result = analyze(simulate(spec), simulate(spec.with_changes(defects=(mass,))), wall_mm=4.0)
     (defect,) = result.defects
     assert surface_distance_mm(defect.axial_mm, defect.angle_deg, mass.axial_mm, mass.angle_deg, MID_WALL_MM) < 10.0
