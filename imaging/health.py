@@ -152,10 +152,13 @@ def channel_changes(baseline: Measurement, current: Measurement) -> ChannelChang
     analytic = sfft.ifft(full, axis=1)
     analytic = np.concatenate([analytic[:, size - lags:], analytic[:, :lags + 1]], axis=1)  # lags -lags..lags
     xcorr, envelope = analytic.real, np.abs(analytic)
-    # Energy of each record up to every sample: what the two records hold where they overlap at a lag.
-    upto_b = np.cumsum(np.square(traces_b, dtype=np.float64), axis=1)
-    upto_c = np.cumsum(np.square(traces_c, dtype=np.float64), axis=1)
-    energy_b, energy_c = upto_b[:, -1], upto_c[:, -1]
+    # What the two records hold where they overlap at a lag: the whole energy less that of the first or last
+    # |lag| samples, which the lag moves past an end (head / tail [:, k]: the first / last k samples').
+    square_b, square_c = np.square(traces_b, dtype=np.float64), np.square(traces_c, dtype=np.float64)
+    energy_b, energy_c = square_b.sum(axis=1), square_c.sum(axis=1)
+    none = np.zeros((current.n_rx, 1))
+    head_b, head_c = (np.hstack([none, np.cumsum(sq[:, :lags], axis=1)]) for sq in (square_b, square_c))
+    tail_b, tail_c = (np.hstack([none, np.cumsum(sq[:, ::-1][:, :lags], axis=1)]) for sq in (square_b, square_c))
     half_period = max(1, round(current.fs_hz / current.excitation_hz / 2))
 
     def carrier_peak(m: int, near: int) -> tuple[float, float]:
@@ -165,10 +168,10 @@ def channel_changes(baseline: Measurement, current: Measurement) -> ChannelChang
         k = first + int(np.argmax(xcorr[m, first:last]))
         offset = parabolic_offset(*xcorr[m, k - 1:k + 2]) if 0 < k < xcorr.shape[1] - 1 else 0.0
         lag = k - lags  # the current's sample lag + i against the baseline's i
-        if lag >= 0:
-            overlap = upto_b[m, n - 1 - lag] * (energy_c[m] - (upto_c[m, lag - 1] if lag else 0.0))
+        if lag >= 0:  # the baseline's first n - lag samples against the current's last
+            overlap = (energy_b[m] - tail_b[m, lag]) * (energy_c[m] - head_c[m, lag])
         else:
-            overlap = (energy_b[m] - upto_b[m, -lag - 1]) * upto_c[m, n - 1 + lag]
+            overlap = (energy_b[m] - head_b[m, -lag]) * (energy_c[m] - tail_c[m, -lag])
         return lag + offset, float(xcorr[m, k]) / math.sqrt(overlap) if overlap > 0 else 0.0
 
     best = [carrier_peak(m, int(np.argmax(envelope[m]))) for m in range(current.n_rx)]
