@@ -20,9 +20,10 @@ it by 1-5 % (Table 3), but on full-wave records (8 and 16 transducers) a 1 kg ma
 receiver weakens it to 0.67-0.8 and moves it 0.3-0.5 period, and its scattered wave, or a sparse
 ring's order-N arrival trailing the direct one, can outgrow the direct arrival's envelope peak: a
 peak-picking check "moved" the arrival by a whole burst (58-68 us). That check, used until
-2026-12-07, flagged receivers on 39 of 373 full-wave records with defects (dev set, own cases,
+2026-12-07, flagged receivers on 44 of 339 full-wave records with defects (dev set, own cases,
 held-out draws 11-20), none faulty, and left them out of the map; the whole-record comparison
-flags none of them, and names every channel fault of tests/imaging/test_receiver_health.py.
+flags none of them (nor any of the 74 defect-free ones), and names every channel fault of
+tests/imaging/test_receiver_health.py.
 """
 from __future__ import annotations
 
