@@ -10,7 +10,7 @@ from fullwave.defects import Mass
 from fullwave.record import PipeModel, SimulationSpec, simulate
 from fullwave.transducers import RingLayout
 from imaging.arrivals import direct_arrival
-from imaging.health import MAX_DELAY_PERIODS, check_receivers
+from imaging.health import MAX_DELAY_PERIODS, NO_LIKENESS, SAME_SHAPE, channel_changes, check_receivers
 from imaging.measurement import Measurement
 
 LIGHT_MASS_KG, LIGHT_MASS_MM = 1.0, 20.0
@@ -83,6 +83,21 @@ def test_a_channel_fault_beside_a_scatterer_is_named(rx, change, kind):
     assert [(f.rx_index, f.kind) for f in faults] == [(rx, kind)]
     if kind == "timing" and rx == 3:
         assert faults[0].delay_s == pytest.approx(change["delay_s"], abs=0.05 / 75e3)
+
+
+@pytest.mark.parametrize(("gain", "kind"), [(0.2, "amplitude"), (4.0, "amplitude"), (0.6, None)])
+def test_a_channel_whose_response_changed_shape_is_named_when_far_weaker_or_stronger(gain, kind):
+    # A debond that also reshapes the transducer's response: the record no longer alike (a second,
+    # delayed copy of it), and weakened or strengthened beyond anything a defect did on the full-wave sets.
+    baseline, current = _pair("reflecting", 250.0, 0.0)
+    reshaped = _with_channel(current, 3, delay_s=3.0 / 75e3)
+    traces = current.traces.astype(np.float64)
+    traces[3] = gain * (traces[3] + reshaped.traces[3])
+    current = dataclasses.replace(current, traces=traces.astype(current.traces.dtype))
+    change = channel_changes(baseline, current)
+    assert NO_LIKENESS < change.likeness[3] < SAME_SHAPE  # reshaped, not gone
+    faults = check_receivers(baseline, current)
+    assert [(f.rx_index, f.kind) for f in faults] == ([] if kind is None else [(3, kind)])
 
 
 def test_a_small_delay_is_no_fault():
