@@ -46,9 +46,15 @@ def analytic_signal(x: np.ndarray, *, axis: int = -1) -> np.ndarray:
     """
     x = np.moveaxis(np.asarray(x, dtype=np.float64), axis, -1)
     n = x.shape[-1]
-    spec = sp_fft.rfft(x, axis=-1)
-    spec[..., 1:(n + 1) // 2] *= 2.0
-    return np.moveaxis(sp_fft.ifft(spec, n, axis=-1), -1, axis)
+    return np.moveaxis(analytic_from_spectrum(sp_fft.rfft(x, axis=-1), n), -1, axis)
+
+
+def analytic_from_spectrum(spec: np.ndarray, n_fft: int) -> np.ndarray:
+    """The analytic signal (n_fft samples along the last axis) of the real signal whose real FFT over
+    n_fft samples is ``spec``: DC and Nyquist once, positive frequencies twice, negative ones dropped,
+    in one inverse (complex) transform. ``spec`` is doubled in place."""
+    spec[..., 1:(n_fft + 1) // 2] *= 2.0
+    return sp_fft.ifft(spec, n_fft, axis=-1, overwrite_x=True)
 
 
 def analytic_matched(traces: np.ndarray, burst: np.ndarray) -> np.ndarray:
@@ -64,12 +70,7 @@ def analytic_matched(traces: np.ndarray, burst: np.ndarray) -> np.ndarray:
     n, p = x.shape[-1], burst.size
     n_fft = sp_fft.next_fast_len(n + p, real=True)
     spec = sp_fft.rfft(x, n_fft, axis=-1) * np.conj(sp_fft.rfft(burst, n_fft))
-    spec[..., 1:(n_fft + 1) // 2] *= 2.0
-    full = np.zeros(x.shape[:-1] + (n_fft,), dtype=np.complex128)
-    full[..., :spec.shape[-1]] = spec
-    if n_fft % 2 == 0:
-        full[..., n_fft // 2] = spec[..., n_fft // 2]  # Nyquist once
-    return sp_fft.ifft(full, n_fft, axis=-1, overwrite_x=True)[..., :n]
+    return analytic_from_spectrum(spec, n_fft)[..., :n]
 
 
 @lru_cache(maxsize=8)

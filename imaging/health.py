@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 from scipy import fft as sfft
 
-from imaging.arrivals import direct_arrival
+from imaging.arrivals import analytic_from_spectrum, direct_arrival
 from imaging.dimap import check_compatible
 from imaging.localize import parabolic_offset
 from imaging.measurement import Measurement
@@ -150,14 +150,7 @@ def channel_changes(baseline: Measurement, current: Measurement) -> ChannelChang
     lags = min(n - 1, 2 * round(current.cycles / current.excitation_hz * current.fs_hz))
     size = sfft.next_fast_len(n + lags, real=True)  # circular correlation without wrap within +- lags
     spectrum = sfft.rfft(traces_c, size, axis=1) * np.conj(sfft.rfft(traces_b, size, axis=1))
-    # The analytic correlation in one inverse transform: positive frequencies doubled, negative ones dropped;
-    # its real part is the correlation, its modulus the envelope.
-    spectrum[:, 1:(size + 1) // 2] *= 2.0
-    full = np.zeros((spectrum.shape[0], size), dtype=spectrum.dtype)
-    full[:, :spectrum.shape[1]] = spectrum
-    if size % 2 == 0:
-        full[:, size // 2] = spectrum[:, size // 2]  # Nyquist, not doubled
-    analytic = sfft.ifft(full, axis=1)
+    analytic = analytic_from_spectrum(spectrum, size)  # real part: the correlation; modulus: its envelope
     analytic = np.concatenate([analytic[:, size - lags:], analytic[:, :lags + 1]], axis=1)  # lags -lags..lags
     xcorr, envelope = analytic.real, np.abs(analytic)
     # What the two records hold where they overlap at a lag: the whole energy less that of the first or last
