@@ -278,6 +278,7 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
     first, found, first_peak = find_defects(residual, scene, threshold=threshold, max_defects=settings.max_defects)
     explained = explained_by_defects(residual, scene, found) if judge else math.nan
     peak = found[0].estimate if found else first_peak
+    lean = receiver_lean(scene.model)  # a sparse ring's angle leans to a receiver's line
     defects = []
     for f in found:
         conf = peak_confidence(f.di_map, f.peak, circumference_mm=scene.circumference_mm,
@@ -289,8 +290,7 @@ def _multipath(residual: np.ndarray, current: Measurement, scene: Scene, setting
             region = region.holding(f.map_peak.axial_mm - f.estimate.axial_mm, float(arc))
             for rival in f.axial_rivals_mm:  # ... and so do the places its echoes fit nearly as well
                 region = region.holding(rival - f.estimate.axial_mm, 0.0)
-        lean = receiver_lean(scene.model)
-        if lean:  # a sparse ring's angle leans to a receiver's line
+        if lean:
             half = receiver_lean_mm(f.estimate.angle_deg, scene.rx_angles_deg[scene.rx_mask], current.circumference_mm,
                                     lean)
             region = region.round_at_least(half, current.circumference_mm)
