@@ -200,16 +200,11 @@ def test_a_strong_defects_leftover_that_images_higher_than_it_is_not_reported(mo
     mass = Mass(axial_mm=120.0, angle_deg=80.0, diameter_mm=20.0, mass_kg=1.0)
     baseline = simulate(_eight_ring("reflecting"))
     current = simulate(_eight_ring("reflecting", mass).with_changes(temperature_c=28.0))
-
-    def off_mm(result) -> list[float]:
-        return [surface_distance_mm(d.axial_mm, d.angle_deg, mass.axial_mm, mass.angle_deg, MID_WALL_MM)
-                for d in result.defects]
-
     searched = assess(current, [baseline], replace(GATEWAY, thermometer=False))
-    assert len(searched.defects) == 1 and off_mm(searched)[0] < 20.0  # measured 15 mm
+    assert len(searched.defects) == 1 and _off_mm(searched, mass) < 20.0  # measured 15 mm
     monkeypatch.setattr(multidefect, "_confirmed", lambda search, found, rings: found)
     unjudged = assess(current, [baseline], replace(GATEWAY, thermometer=False))
-    assert len(unjudged.defects) == 2 and off_mm(unjudged)[0] > 100.0  # measured 145 mm
+    assert len(unjudged.defects) == 2 and _off_mm(unjudged, mass) > 100.0  # measured 145 mm
 
 
 def test_thermometers_that_read_nonsense_are_not_believed(warmed_light_mass):
@@ -231,9 +226,9 @@ def test_a_wrong_thermometer_on_a_sound_pipe_changes_nothing(off_c):
     assert result.strong_change is None
 
 
-def _off_mm(result) -> float:
+def _off_mm(result, mass: Mass = LIGHT_MASS) -> float:
     best = result.defects[0]
-    return surface_distance_mm(best.axial_mm, best.angle_deg, LIGHT_MASS.axial_mm, LIGHT_MASS.angle_deg, MID_WALL_MM)
+    return surface_distance_mm(best.axial_mm, best.angle_deg, mass.axial_mm, mass.angle_deg, MID_WALL_MM)
 
 
 def test_a_strong_defect_whose_search_runs_past_the_compensated_range_is_imaged_at_its_thermometers_stretch(
