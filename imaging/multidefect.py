@@ -63,8 +63,10 @@ within half a receiver pitch where the plain echo fit explains them best (``_ech
 The found defects' echoes are fitted along FIT_WRAPS legs round the pipe, more than the map's two:
 the scattered wave keeps circling the pipe within the record (full-wave dev set, a notch's echoes
 at its true position: the two legs leave 34 % of the record, six 7 %), and what the fit leaves of
-the later turns otherwise images as spurious later defects. The map keeps its two (more legs in the
-map itself were not tried).
+the later turns otherwise images as spurious later defects. A dense ring's defect placed by its
+echoes is placed along every leg that can arrive within the record (``fit_wraps``: 11 on a 600 us
+record of the paper's pipe); the search keeps FIT_WRAPS, on which its gates were set. The map keeps
+its two (more legs in the map itself were not tried).
 """
 from __future__ import annotations
 
@@ -84,6 +86,7 @@ from imaging.multipath import local_multipath_pixels, multipath_pixels
 from imaging.paths import PathModel
 from imaging.region import localization_region
 from imaging.scene import Scene
+from imaging.timing import MM_PER_M
 
 DEFAULT_EXCLUSION_MM = 50.0  # a second defect must lie this far (surface distance) from the first
 MIN_RELATIVE_DI = 0.15  # ... and score at least this fraction of the first one's DI
@@ -103,7 +106,8 @@ FINE_MOVES = 3  # ... and may follow the peak this many times when it lies on th
 EDGE_MM = 2.0  # a later peak this close to an end of the imaged span is a boundary maximum, not a located one
 NEAR_RING_WAVELENGTHS = 0.5  # ... and one this close to a ring (in wavelengths) lies in its near field, where
 #                             the map's far-field paths do not hold: what changes at the ring, not a scatterer
-FIT_WRAPS = 6  # the found defects' echoes are fitted along this many legs round the pipe (the map: 2)
+FIT_WRAPS = 6  # the found defects' echoes are fitted along this many legs round the pipe (the map: 2); a dense
+#               ring's defect is placed by its echoes along every leg that arrives within the record (``fit_wraps``)
 PATTERN_ORDERS = 1  # the alternative a later peak must beat: the found defects' echoes with each path's
 #                     amplitude a circular harmonic of the receiver's bearing up to this order
 FAINT_RELATIVE_DI_JOINT = 0.35  # ... on a map projecting its groups jointly (a defect whose groups overlap scores
@@ -426,6 +430,27 @@ def find_defects(
     return first, found, first_peak
 
 
+def fit_wraps(scene: Scene, n_samples: int) -> int:
+    """How many legs round the pipe (imaging/paths.py ``wrap_turns``) a defect placed by its echoes
+    (``_unexplained_by``) is fitted along: on a sparse ring's element model FIT_WRAPS; on a dense ring's
+    plane-wave model every leg that can arrive within the record (``n_samples`` long): the scattered wave
+    circles the pipe as long as the record lasts. A leg k turns round the pipe is at least (k - 1/2)
+    circumferences long.
+
+    Fitted at the true position, what the fit leaves of a 16-ring notch's record without end echoes
+    (the own engine, 2 mm cells, tests/imaging/test_fullwave_legs.py): 6 legs 0.27, 8 legs 0.14, 11 (all
+    that arrive) 0.07. The fit drops legs that no receiver sees within the record (``fit_smooth_echoes``),
+    so the bound costs only the legs that arrive. The element model keeps FIT_WRAPS: its paths are ~50x
+    as many, and 8 legs lost the in-plane 8-ring mass (docs/imaging.md, "Echoes round the pipe"). The
+    search keeps FIT_WRAPS too: with every leg there a mock 1 mm-deep second notch fell under the faint
+    fraction and was lost (docs/imaging.md)."""
+    if scene.model.elements:
+        return FIT_WRAPS
+    longest_mm = (scene.t0_s + n_samples / scene.fs_hz) * scene.velocity_m_s * MM_PER_M
+    turns = math.floor(longest_mm / scene.model.circumference_mm + 0.5)  # the most turns a leg within it takes
+    return max(FIT_WRAPS, 2 * turns + 1)
+
+
 def echo_placed(model: PathModel, di: float) -> bool:
     """Is a defect of peak ``di`` imaged with ``model`` placed by its echo fit (``_echo_fitted``) rather
     than left on the map's peak?
@@ -496,13 +521,15 @@ def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
 
 
 def _unexplained_by(search: _Search, others: list[Found]) -> Unexplained:
-    """What the six-leg fit of a scatterer at a trial position, jointly with the ``others``' echoes
+    """What the echo fit (along ``fit_wraps`` legs) of a scatterer at a trial position, jointly with the ``others``' echoes
     (defects and maxima at a ring, where they are) and all with echoes up to the given order, leaves
     of the record: fitted together, the others cannot take up part of its echoes where their paths
     cross (synthetic two points without end echoes: 15.5 mm off with the others removed first, 2.4 mm
     fitted jointly)."""
+    legs = fit_wraps(search.scene, search.original.shape[-1])
+
     def unexplained(at: Found, orders: int) -> float:
-        leftover = search.original - sum(search.fits(others + [at], orders=orders))
+        leftover = search.original - sum(search.fits(others + [at], orders=orders, wraps=legs))
         return float(np.sum(leftover * leftover))
 
     return unexplained
@@ -511,7 +538,7 @@ def _unexplained_by(search: _Search, others: list[Found]) -> Unexplained:
 def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
     """A defect (``echo_placed``) placed along its line (the map's angle) where its echoes are best
     explained: the axial position, within the map's own stated 90 % region round its peak
-    (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the six-leg fit with a
+    (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the echo fit (``fit_wraps`` legs) with a
     first-order directional pattern (PATTERN_ORDERS), jointly with the other defects' echoes, leaves
     of the record (``unexplained_by``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
     the parabola through the best three, kept inside the region; each coarse step tried with every
@@ -667,7 +694,7 @@ def _echo_rivals(scene: Scene, axial_mm: float, unexplained: Callable[[float], f
 def _echo_fit_angle(item: Found, unexplained_by: Unexplained, n_rx: int) -> Found:
     """A defect that ``_echo_fit_axial`` placed, turned round the pipe to where its echoes are best
     explained: the angle, within half a pitch of the ``n_rx`` receivers from the map's, that minimises
-    what the six-leg *plain* fit (one amplitude per path, no directional pattern), jointly with the
+    what the *plain* echo fit (one amplitude per path, no directional pattern), jointly with the
     other defects' echoes, leaves of the record (``unexplained_by``); steps of ECHO_FIT_ANGLE_STEP_DEG, then the parabola through the
     best three. A defect the axial fit left alone (not localized) keeps the map's angle.
 
