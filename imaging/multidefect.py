@@ -116,10 +116,9 @@ FAINT_PATTERN_ORDERS = 2  # ... up to this order for a faint one (below FAINT_RE
 ECHO_FIT_SPAN_MM = 40.0  # a sparse ring's defect is placed by its echo fit at most this far from the map's peak
 ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is ~20-30 mm wide)
 # ... each with its echoes lagging by b (1 - cos psi), psi the scattering angle, for b in these (rad), the
-# best (position, b) kept: a notch's forward field lags. Only b = 0 by default: with (0, 1, 2, 3) most held-out
-# 8-ring notches came closer but two notches and a near-rigid mass went further (docs/imaging.md, "A forward
-# lag fitted on sparse rings: measured, not yet the default").
-FORWARD_LAGS_RAD: tuple[float, ...] = (0.0,)
+# best (position, b) kept where it leaves decisively less than no lag (``forward_lags``, ``_line_fit``): a
+# notch's forward field lags (docs/imaging.md, "A forward lag fitted on sparse rings").
+FORWARD_LAGS_RAD: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0)
 ECHO_RIVAL_WAVELENGTHS = 2.0  # the echo fit's profile is searched this far either side of where it placed a defect
 ECHO_RIVAL_MARGIN = 0.1  # ... for a local minimum leaving at most (1 + this) x the best: a rival position
 ECHO_RIVAL_MIN_WAVELENGTHS = 0.5  # ... at least this far from the placed one (closer: the same minimum's flank)
@@ -517,7 +516,30 @@ def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
     """A defect placed by its echoes (``echo_placed``): along its line, then round the pipe, each
     trial position fitted jointly with the ``others``' echoes (``_unexplained_by``)."""
     unexplained = _unexplained_by(search, others)
-    return _echo_fit_angle(_echo_fit_axial(search.scene, item, unexplained), unexplained, search.scene.n_rx)
+    turned = _echo_fit_angle(_echo_fit_axial(search.scene, item, unexplained), unexplained, search.scene.n_rx)
+    return _echo_fit_lag(search.scene, turned, unexplained)
+
+
+def _echo_fit_lag(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
+    """A placed and turned defect (``_echo_fit_axial``, ``_echo_fit_angle``) placed once more along its line with
+    the forward lags of ``forward_lags`` beside the position (``_line_fit``: a lag kept only where it leaves
+    decisively less than none), within the same stretch. Last, once its line and angle are fixed with no lag: a
+    lag is freedom that also absorbs a wrong line's or a wrong angle's mismatch (a synthetic scatterer with no
+    lag, 1.25 deg round the pipe from the line it was fitted along, took lag 2 and moved 6 mm)."""
+    lags = forward_lags(scene.model)
+    if item.map_peak is None or len(lags) < 2:
+        return item
+    region = localization_region(peak_confidence(item.di_map, item.peak, circumference_mm=scene.circumference_mm,
+                                                 runner_up_di=item.runner_up_di),
+                                 circumference_mm=scene.circumference_mm, axial_span_mm=scene.model.tx_rx_distance_mm)
+    first, last = _inside_the_span(scene.grid)
+    line = _line_fit(item, item.estimate, min(ECHO_FIT_SPAN_MM, region.axial_half_mm), first, last, unexplained_by,
+                     lags)
+    if line is None or line.lag == 0.0:
+        return item
+    return dataclasses.replace(item, estimate=dataclasses.replace(item.estimate, axial_mm=line.axial_mm),
+                               forward_lag_rad=line.lag,
+                               axial_rivals_mm=_echo_rivals(scene, line.axial_mm, line.along_its_lag))
 
 
 def _unexplained_by(search: _Search, others: list[Found]) -> Unexplained:
@@ -542,7 +564,7 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     first-order directional pattern (PATTERN_ORDERS), jointly with the other defects' echoes, leaves
     of the record (``unexplained_by``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
     the parabola through the best three, kept inside the region; each coarse step tried with every
-    forward lag of FORWARD_LAGS_RAD (by default none but 0), the best lag kept on the defect. Where the map does not localize
+    forward lag of ``forward_lags`` (a lag kept where decisively better than none), the best lag kept on the defect. Where the map does not localize
     the defect at all its position is kept (there the fit was measured to wander: an 8-ring light
     mass with a searched stretch, 13 -> 40 mm). The DI, severity, runner-up and confidence stay
     the map's (``Found.peak``).
@@ -608,8 +630,23 @@ def _moves_to(other: _LineFit, best: _LineFit, own: _LineFit, wavelength_mm: flo
             and abs(other.axial_mm - own.axial_mm) >= ECHO_RIVAL_MIN_WAVELENGTHS * wavelength_mm)
 
 
+def forward_lags(model: PathModel) -> tuple[float, ...]:
+    """The forward lags b (rad) a defect's echoes are tried with when it is placed along its line (``_line_fit``,
+    which keeps a lag only where it leaves less than no lag by more than ECHO_RIVAL_MARGIN): FORWARD_LAGS_RAD on
+    a sparse ring's element model, none but 0 on a plane-wave model, where a lag and the axial position trade
+    exactly (docs/imaging.md, "A pattern by defect kind"); with 8 elements the scattering angle psi differs
+    between element-receiver pairs that an axial move changes alike, so the two can be told apart.
+
+    Tried last (``_echo_fit_lag``, once the line and angle are fixed with no lag) and kept only where decisively
+    better: on the 8-ring cases of dev, own and four held-out draws the own absorbing notch 7.4 -> 1.0 mm, eight
+    held-out notches closer (21.0 -> 8.1, 29.1 -> 18.2, 8.8 -> 2.4 mm ...), one further (2.6 -> 2.9), nothing
+    else moved. Kept wherever it fitted best and tried with the line, a held-out near-rigid mass went 4.3 ->
+    13.2 mm and the own pair of masses 5.3 / 7.2 -> 8.8 / 14.1 (docs/imaging.md)."""
+    return FORWARD_LAGS_RAD if model.elements else (0.0,)
+
+
 def _line_fit(item: Found, start: Estimate, span: float, first: float, last: float,
-              unexplained_by: Unexplained) -> _LineFit | None:
+              unexplained_by: Unexplained, lags: tuple[float, ...] = (0.0,)) -> _LineFit | None:
     """``_echo_fit_axial``'s search along ``start``'s line within ``span`` of it (None: too little of the line
     inside the imaged span, ``first`` to ``last``)."""
     lo = max(first, start.axial_mm - span)
@@ -626,7 +663,11 @@ def _line_fit(item: Found, start: Estimate, span: float, first: float, last: flo
         return left[z, lag]
 
     coarse = np.linspace(lo, hi, 1 + round((hi - lo) / step))
-    best, lag = min(((float(z), b) for b in FORWARD_LAGS_RAD for z in coarse), key=lambda zb: unexplained(*zb))
+    best, lag = min(((float(z), b) for b in lags for z in coarse), key=lambda zb: unexplained(*zb))
+    if lag != 0.0:  # a lag only where the echoes support it: decisively better than none (as a rival line must be)
+        unlagged = min((float(z) for z in coarse), key=lambda z: unexplained(z, 0.0))
+        if not (1.0 + ECHO_RIVAL_MARGIN) * unexplained(best, lag) < unexplained(unlagged, 0.0):
+            best, lag = unlagged, 0.0
     half = (coarse[1] - coarse[0]) / 2
     z0, z1, z2 = best - half, best, best + half
     z_best = min((z0, z1, z2), key=lambda z: unexplained(z, lag))

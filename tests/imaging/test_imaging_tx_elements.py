@@ -215,21 +215,45 @@ def test_echoes_lagging_forward_are_fitted_with_their_lag_and_not_without_it():
                           lags_rad=[1.0])
 
 
+def test_forward_lags_are_tried_on_a_sparse_rings_element_model_only():
+    assert multidefect.forward_lags(_ring_model(8, 75e3)) == multidefect.FORWARD_LAGS_RAD
+    assert len(multidefect.FORWARD_LAGS_RAD) > 1 and 0.0 in multidefect.FORWARD_LAGS_RAD
+    assert multidefect.forward_lags(PathModel(400.0, MID_WALL_MM, 40.0)) == (0.0,)  # a plane wave: it trades with z
+
+
+@pytest.mark.parametrize(("lagged_left", "lag_kept"), [(0.8, 1.0), (0.95, 0.0)])
+def test_a_lag_is_kept_only_where_the_echoes_fit_it_decisively_better_than_none(lagged_left, lag_kept):
+    # What the echo fit leaves along the line: least at 180 mm with no lag (1.0), at 170 mm with lag 1
+    # (``lagged_left``); a lag must leave less than none by more than ECHO_RIVAL_MARGIN (10 %).
+    def unexplained_by(at: multidefect.Found, orders: int) -> float:
+        z, lag = at.estimate.axial_mm, at.forward_lag_rad
+        best_z, least = (180.0, 1.0) if lag == 0.0 else (170.0, lagged_left)
+        return least + ((z - best_z) / 20.0) ** 2 + (0.0 if lag in (0.0, 1.0) else 5.0)
+
+    item = multidefect.Found(Estimate(176.0, 50.0, 0.1), None, 0.0)  # type: ignore[arg-type]
+    line = multidefect._line_fit(item, item.estimate, 40.0, 2.0, 398.0, unexplained_by, multidefect.FORWARD_LAGS_RAD)
+    assert line is not None and line.lag == lag_kept
+    assert line.axial_mm == pytest.approx(170.0 if lag_kept else 180.0, abs=1.0)
+
+
 @pytest.mark.parametrize("lag_rad", [0.0, 2.0])
 def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_forward_lag_its_echoes_have(monkeypatch, lag_rad):
     # Echoes of a scatterer at 180 mm 50 deg lagging by lag (1 - cos psi), as a notch's do (lag 2) or not
-    # (a near-rigid mass); the map put it 14 mm further on. The region round the map's peak is stubbed:
-    # the map itself is not what is tested.
-    scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    # (a near-rigid mass), on a pipe with free ends; the map put it 14 mm further on. The region round the
+    # map's peak is stubbed: the map itself is not what is tested.
+    model = _ring_model(8, 75e3, tx_images=1, near_end_mm=-300.0, far_end_mm=700.0, near_reflection=1.0,
+                        far_reflection=1.0)
+    scene = _scene(model, Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
     waves = group_waves(scene, [(180.0, 50.0)], 5000, [lag_rad])[:, 0]
     record = np.einsum("mgsn,gs->mn", waves, np.random.default_rng(11).standard_normal(waves.shape[1:3]))
-    monkeypatch.setattr(multidefect, "FORWARD_LAGS_RAD", (0.0, 1.0, 2.0, 3.0))  # the default tries 0 only
     monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
     monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
     unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
     item = multidefect.Found(Estimate(194.0, 50.0, 0.1), _bumps(scene.grid, [(194.0, 50.0, 1.0)]), 0.0)
-    placed = multidefect._echo_fit_axial(scene, item, unexplained)
+    along = multidefect._echo_fit_angle(multidefect._echo_fit_axial(scene, item, unexplained), unexplained, scene.n_rx)
+    placed = multidefect._echo_fit_lag(scene, along, unexplained)  # last, once its line and angle are fixed
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
+    assert placed.estimate.angle_deg == pytest.approx(50.0, abs=1.0)
     assert placed.forward_lag_rad == lag_rad and placed.map_peak == item.estimate
     off = dataclasses.replace(placed, estimate=dataclasses.replace(placed.estimate, angle_deg=62.0))
     turned = multidefect._echo_fit_angle(off, unexplained, scene.n_rx)  # turned back with the lag it was placed with
