@@ -527,14 +527,11 @@ def _echo_fit_lag(scene: Scene, item: Found, unexplained_by: Unexplained) -> Fou
     lag is freedom that also absorbs a wrong line's or a wrong angle's mismatch (a synthetic scatterer with no
     lag, 1.25 deg round the pipe from the line it was fitted along, took lag 2 and moved 6 mm)."""
     lags = forward_lags(scene.model)
-    if item.map_peak is None or len(lags) < 2:
+    span = _echo_fit_span(scene, item)
+    if item.map_peak is None or len(lags) < 2 or span is None:
         return item
-    region = localization_region(peak_confidence(item.di_map, item.peak, circumference_mm=scene.circumference_mm,
-                                                 runner_up_di=item.runner_up_di),
-                                 circumference_mm=scene.circumference_mm, axial_span_mm=scene.model.tx_rx_distance_mm)
     first, last = _inside_the_span(scene.grid)
-    line = _line_fit(item, item.estimate, min(ECHO_FIT_SPAN_MM, region.axial_half_mm), first, last, unexplained_by,
-                     lags)
+    line = _line_fit(item, item.estimate, span, first, last, unexplained_by, lags)
     if line is None or line.lag == 0.0:
         return item
     return dataclasses.replace(item, estimate=dataclasses.replace(item.estimate, axial_mm=line.axial_mm),
@@ -555,6 +552,16 @@ def _unexplained_by(search: _Search, others: list[Found]) -> Unexplained:
         return float(np.sum(leftover * leftover))
 
     return unexplained
+
+
+def _echo_fit_span(scene: Scene, item: Found) -> float | None:
+    """How far either way along its line the echo fit may place ``item``: the half-length of its map's stated 90 %
+    region round the map's peak (imaging/region.py), at most ECHO_FIT_SPAN_MM; None where the map does not
+    localize it."""
+    region = localization_region(peak_confidence(item.di_map, item.peak, circumference_mm=scene.circumference_mm,
+                                                 runner_up_di=item.runner_up_di),
+                                 circumference_mm=scene.circumference_mm, axial_span_mm=scene.model.tx_rx_distance_mm)
+    return min(ECHO_FIT_SPAN_MM, region.axial_half_mm) if region.localized else None
 
 
 def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
@@ -584,12 +591,9 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     the Tx ring peaked 40 mm and 7 deg away, its own maximum (0.92 of the peak) 9 mm from it; along that
     maximum's line the echoes leave 0.54 of what they leave along the peak's (reported 3.8 mm off, was 40.5)."""
     estimate = item.estimate
-    region = localization_region(peak_confidence(item.di_map, estimate, circumference_mm=scene.circumference_mm,
-                                                 runner_up_di=item.runner_up_di),
-                                 circumference_mm=scene.circumference_mm, axial_span_mm=scene.model.tx_rx_distance_mm)
-    if not region.localized:
+    span = _echo_fit_span(scene, item)
+    if span is None:
         return item
-    span = min(ECHO_FIT_SPAN_MM, region.axial_half_mm)
     first, last = _inside_the_span(scene.grid)
     own = _line_fit(item, estimate, span, first, last, unexplained_by)
     if own is None:

@@ -239,11 +239,9 @@ def test_a_lag_is_kept_only_where_the_echoes_fit_it_decisively_better_than_none(
 @pytest.mark.parametrize("lag_rad", [0.0, 2.0])
 def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_forward_lag_its_echoes_have(monkeypatch, lag_rad):
     # Echoes of a scatterer at 180 mm 50 deg lagging by lag (1 - cos psi), as a notch's do (lag 2) or not
-    # (a near-rigid mass), on a pipe with free ends; the map put it 14 mm further on. The region round the
-    # map's peak is stubbed: the map itself is not what is tested.
-    model = _ring_model(8, 75e3, tx_images=1, near_end_mm=-300.0, far_end_mm=700.0, near_reflection=1.0,
-                        far_reflection=1.0)
-    scene = _scene(model, Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    # (a near-rigid mass); the map put it 14 mm further on. The region round the map's peak is stubbed:
+    # the map itself is not what is tested.
+    scene = _scene(_ring_model(8, 75e3, tx_images=1), Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
     waves = group_waves(scene, [(180.0, 50.0)], 5000, [lag_rad])[:, 0]
     record = np.einsum("mgsn,gs->mn", waves, np.random.default_rng(11).standard_normal(waves.shape[1:3]))
     monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
