@@ -76,7 +76,7 @@ def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.n
 
 
 def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
-                lags_rad: Sequence[float] | None = None) -> np.ndarray:
+                lags_rad: Sequence[float] | None = None, backward: Sequence[bool] | None = None) -> np.ndarray:
     """Each position's echo along each coherence group, as it reaches each receiver: [n_rx, n_pos, n_groups, 2, n]
     (burst and quadrature twin), the group's paths added with their weights and cut to the record.
 
@@ -85,6 +85,9 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     ``lags_rad`` (one per position, default none): each path's carrier lags by lag (1 - cos psi),
     psi its scattering angle (``element_scattering_cosines``): a scatterer whose forward field lags
     its backward one, as a notch's does (docs/imaging.md, "A forward lag fitted on sparse rings").
+    ``backward`` (one per position, default none): each path's weight times (1 - cos psi) / 2, a scatterer
+    that sends nothing straight on and most straight back, as a thinning of the wall does to first order
+    (docs/imaging.md, "A backward weight").
     Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
@@ -97,8 +100,13 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
     p_idx, m_idx, pos_idx = np.nonzero(keep)
     c, s = weight[keep], None
-    if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
+    lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
+    weighted = backward is not None and any(backward)
+    if lagged or weighted:
         cos_psi = element_scattering_cosines(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])
+    if weighted:
+        c = c * np.where(np.asarray(backward, dtype=bool)[None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
+    if lagged:
         phase = (np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, pos]
         c, s = c * np.cos(phase), c * np.sin(phase)
     return group_columns(m_idx, pos_idx, groups[p_idx], k[keep], c, s, shapes, (n_rx, n_pos, n_groups, n))
@@ -115,11 +123,13 @@ def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: i
 
 
 def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
-                     shared: bool, lags_rad: Sequence[float] | None = None) -> list[np.ndarray]:
+                     shared: bool, lags_rad: Sequence[float] | None = None,
+                     backward: Sequence[bool] | None = None) -> list[np.ndarray]:
     """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
-    path, on ``group_waves`` (``lags_rad``: its forward lags): the fit for a model with Tx elements."""
+    path, on ``group_waves`` (``lags_rad``: its forward lags; ``backward``: its backward weight): the fit for a
+    model with Tx elements."""
     n_rx, n = residual.shape
-    waves = group_waves(scene, positions, n, lags_rad)  # [m, pos, g, 2, n]
+    waves = group_waves(scene, positions, n, lags_rad, backward)  # [m, pos, g, 2, n]
     n_pos = len(positions)
     columns = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
     gram = np.einsum("man,mbn->mab", columns, columns, optimize=True)
@@ -210,7 +220,8 @@ SMOOTH_ORDERS = 0  # Fourier orders of a path's amplitude over the receivers' be
 
 
 def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],
-                      orders: int = SMOOTH_ORDERS, lags_rad: Sequence[float] | None = None) -> list[np.ndarray]:
+                      orders: int = SMOOTH_ORDERS, lags_rad: Sequence[float] | None = None,
+                      backward: Sequence[bool] | None = None) -> list[np.ndarray]:
     """Like ``fit_echoes``, but each path's amplitude is shared by the receivers (the map's own model).
 
     The coherent map (imaging/multipath.py) scores a point scatterer with one complex amplitude
@@ -226,14 +237,17 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     amplitude for every path: on a 16-receiver ring that also absorbs another defect's echoes
     wherever they overlap one of this defect's many paths, so the weaker of two defects vanished
     with the stronger one's fit (full-wave dev set: a second notch of DI 0.15 left at 0.03).
-    ``lags_rad``: each position's forward lag (``group_waves``); a model with Tx elements only.
+    ``lags_rad``: each position's forward lag, ``backward``: whether its paths carry the backward weight
+    (``group_waves``); a model with Tx elements only.
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
     if not positions:
         return []
     if scene.model.elements:
-        return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad)
+        return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad, backward=backward)
+    if backward is not None and any(backward):
+        raise ValueError("a backward weight is fitted only for a model with Tx elements")
     if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
         raise ValueError("a forward lag is fitted only for a model with Tx elements (a plane wave trades it "
                          "against the axial position)")
