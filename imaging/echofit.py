@@ -87,7 +87,7 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     its backward one, as a notch's does (docs/imaging.md, "A forward lag fitted on sparse rings").
     ``backward`` (one per position, default none): each path's weight times (1 - cos psi) / 2, a scatterer
     that sends nothing straight on and most straight back, as a thinning of the wall does to first order
-    (docs/imaging.md, "A backward weight").
+    (docs/imaging.md, "A backward weight tried beside the lags on sparse rings").
     Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))

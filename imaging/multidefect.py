@@ -674,7 +674,7 @@ def echo_shapes(model: PathModel) -> tuple[EchoShape, ...]:
     decisively less than the plain point, ``_line_fit``): each forward lag of ``forward_lags`` (the first: none,
     PLAIN) and, on a sparse ring's element model where BACKWARD_WEIGHT, the backward weight: a thinning of the
     wall scatters, to first order, in proportion to 1 - cos psi, a mass alike every way (docs/imaging.md, "A
-    backward weight tried beside the lags"). With it, 8-ring cases of dev, own and two held-out draws: notches
+    backward weight tried beside the lags on sparse rings"). With it, 8-ring cases of dev, own and two held-out draws: notches
     28.9 -> 20.4, 13.7 -> 5.5, 11.8 -> 8.4 mm, dev masses 0.3-0.9 mm closer, four defects 0.3-1.0 mm further;
     applied without the rule, a near-rigid mass went 6.6 -> 24.9 mm."""
     shapes = tuple(EchoShape(lag) for lag in forward_lags(model))
