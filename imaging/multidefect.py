@@ -60,7 +60,7 @@ without end echoes (``echo_placed``), are finally placed along their line where 
 best explained (``_echo_fit_axial``), within the map's stated region, then turned round the pipe
 within half a receiver pitch where the plain echo fit explains them best (``_echo_fit_angle``); a
 sparse ring's are last placed along that line once more with each echo shape (forward lags, the
-backward weight of a thinning) beside the plain point, one kept where decisively better (``_echo_fit_lag``).
+backward weight of a thinning) beside the plain point, one kept where decisively better (``_echo_fit_shape``).
 
 The found defects' echoes are fitted along FIT_WRAPS legs round the pipe, more than the map's two:
 the scattered wave keeps circling the pipe within the record (full-wave dev set, a notch's echoes
@@ -522,10 +522,10 @@ def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
     trial position fitted jointly with the ``others``' echoes (``_unexplained_by``)."""
     unexplained = _unexplained_by(search, others)
     turned = _echo_fit_angle(_echo_fit_axial(search.scene, item, unexplained), unexplained, search.scene.n_rx)
-    return _echo_fit_lag(search.scene, turned, unexplained)
+    return _echo_fit_shape(search.scene, turned, unexplained)
 
 
-def _echo_fit_lag(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
+def _echo_fit_shape(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
     """A placed and turned defect (``_echo_fit_axial``, ``_echo_fit_angle``) placed once more along its line with
     the echo shapes of ``echo_shapes`` (forward lags, the backward weight) beside the position (``_line_fit``: a
     shape kept only where it leaves decisively less than the plain point), within the same stretch. Last, once
@@ -576,8 +576,8 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     (imaging/region.py; at most ECHO_FIT_SPAN_MM), that minimises what the echo fit (``fit_wraps`` legs) with a
     first-order directional pattern (PATTERN_ORDERS), jointly with the other defects' echoes, leaves
     of the record (``unexplained_by``). Coarse steps of at most ECHO_FIT_STEP_MM, half steps round the best, then
-    the parabola through the best three, kept inside the region; each coarse step tried with every
-    forward lag of ``forward_lags`` (a lag kept where decisively better than none), the best lag kept on the defect. Where the map does not localize
+    the parabola through the best three, kept inside the region, with the plain point's echoes (the echo shapes
+    come last, ``_echo_fit_shape``, once the line and angle are fixed). Where the map does not localize
     the defect at all its position is kept (there the fit was measured to wander: an 8-ring light
     mass with a searched stretch, 13 -> 40 mm). The DI, severity, runner-up and confidence stay
     the map's (``Found.peak``).
@@ -611,8 +611,7 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
             line = other
     rivals = _echo_rivals(scene, line.axial_mm, line.along_its_shape)
     return dataclasses.replace(item, estimate=dataclasses.replace(line.start, axial_mm=line.axial_mm, di=estimate.di),
-                               map_peak=estimate, forward_lag_rad=line.shape.lag_rad, backward=line.shape.backward,
-                               axial_rivals_mm=rivals)
+                               map_peak=estimate, axial_rivals_mm=rivals)
 
 
 @dataclass(frozen=True)
@@ -661,7 +660,7 @@ def forward_lags(model: PathModel) -> tuple[float, ...]:
     exactly (docs/imaging.md, "A pattern by defect kind"); with 8 elements the scattering angle psi differs
     between element-receiver pairs that an axial move changes alike, so the two can be told apart.
 
-    Tried last (``_echo_fit_lag``, once the line and angle are fixed with no lag) and kept only where decisively
+    Tried last (``_echo_fit_shape``, once the line and angle are fixed with no lag) and kept only where decisively
     better: on the 8-ring cases of dev, own and four held-out draws the own absorbing notch 7.4 -> 1.0 mm, eight
     held-out notches closer (21.0 -> 8.1, 29.1 -> 18.2, 8.8 -> 2.4 mm ...), one further (2.6 -> 2.9), nothing
     else moved. Kept wherever it fitted best and tried with the line, a held-out near-rigid mass went 4.3 ->
@@ -670,7 +669,7 @@ def forward_lags(model: PathModel) -> tuple[float, ...]:
 
 
 def echo_shapes(model: PathModel) -> tuple[EchoShape, ...]:
-    """The echo shapes a placed defect is tried with last (``_echo_fit_lag``; one kept only where it leaves
+    """The echo shapes a placed defect is tried with last (``_echo_fit_shape``; one kept only where it leaves
     decisively less than the plain point, ``_line_fit``): each forward lag of ``forward_lags`` (the first: none,
     PLAIN) and, on a sparse ring's element model where BACKWARD_WEIGHT, the backward weight: a thinning of the
     wall scatters, to first order, in proportion to 1 - cos psi, a mass alike every way (docs/imaging.md, "A

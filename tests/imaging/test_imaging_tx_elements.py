@@ -274,7 +274,7 @@ def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_echo_shape_its_
     unexplained = multidefect._unexplained_by(multidefect._Search(record, scene), [])
     item = multidefect.Found(Estimate(194.0, 50.0, 0.1), _bumps(scene.grid, [(194.0, 50.0, 1.0)]), 0.0)
     along = multidefect._echo_fit_angle(multidefect._echo_fit_axial(scene, item, unexplained), unexplained, scene.n_rx)
-    placed = multidefect._echo_fit_lag(scene, along, unexplained)  # last, once its line and angle are fixed
+    placed = multidefect._echo_fit_shape(scene, along, unexplained)  # last, once its line and angle are fixed
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
     assert placed.estimate.angle_deg == pytest.approx(50.0, abs=1.0)
     assert (placed.forward_lag_rad, placed.backward) == (lag_rad, backward) and placed.map_peak == item.estimate
