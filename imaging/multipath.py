@@ -106,7 +106,9 @@ def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
             return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
         if inverse_weight_sq is None:
             inverse_weight_sq = _reciprocal(weight_sq)
-        power = (groups.real**2 + groups.imag**2) * inverse_weight_sq
+        # squared in double: a single-precision sum of near-null weights (a polarised path almost along
+        # the ring, w^2 ~ 1e-27) squares below single precision's range, and the map there went to 0
+        power = (np.square(groups.real, dtype=np.float64) + np.square(groups.imag, dtype=np.float64)) * inverse_weight_sq
         snr = np.sqrt(np.sum(power, axis=0) / groups.shape[0])
         return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
     weighted = np.sum(groups, axis=0)

@@ -67,6 +67,25 @@ def test_fast_multipath_map_matches_the_literal_sum(problem):
     assert_equals_the_literal_map(multipath_pixels(feature, scene, normalise=normalise), feature, scene, normalise)
 
 
+@pytest.mark.parametrize("joint", [False, True])
+def test_a_pixel_a_hair_off_the_receiver_ring_keeps_its_map_value(joint):
+    # Found by the test above: a pixel at 49.99999999999999 mm with the receiver ring at 50 gives a
+    # polarised path (weight |dz| / r) almost along the ring, w^2 ~ 1e-28 with power 2. The SNR map is
+    # the same there as next to it (the weight cancels), but its square in single precision underflowed
+    # and the map read 0.
+    scene = Scene(rx_angles_deg=np.array([1.0]), rx_mask=np.array([True]), velocity_m_s=1000.0, t0_s=0.0,
+                  fs_hz=200000.0, excitation_hz=85e3, cycles=5, window_samples=1,
+                  model=PathModel(tx_rx_distance_mm=50.0, circumference_mm=50.0, wavelength_mm=5.0, polarization=True,
+                                  wraps=1),
+                  grid=Grid(40.99999999999999, 3.0, 4, 0.0, 1.0, 1), power=2, joint_groups=joint)
+    assert 0 < abs(scene.grid.axial_mm[-1] - 50.0) < 1e-13
+    rng = np.random.default_rng(5)
+    feature = rng.standard_normal((1, 20)) + 1j * rng.standard_normal((1, 20))
+    fast = multipath_pixels(feature, scene)
+    assert fast[-1, 0] > 0.5 * fast[0, 0] > 0
+    assert_equals_the_literal_map(fast, feature, scene, "snr")
+
+
 def assert_equals_the_literal_map(fast: np.ndarray, feature: np.ndarray, scene: Scene, normalise: str) -> None:
     """``fast`` equals the literal map within single precision. The gather sums in float32: its error scales
     with the terms summed, not with what is left after they cancel (a one-pixel map at 1e-4 of its terms was
