@@ -2,7 +2,7 @@
 
 Runs ``imaging.analysis.analyze`` (what ``pipesentry analyze`` runs, the file's wall thickness) on one
 baseline/current pair of the full-wave development set twice in this process: the first call builds
-the grid's gather tables and the per-pixel Gram inverse of the joint map (imaging/multipath.py), the
+the grid's gather tables and the per-pixel Gram whitening of the joint map (imaging/multipath.py), the
 second finds them cached. Prints both times, the process's peak resident memory before and after, and
 what the caches hold. Default record: ``n16_reflecting_notch_150_30`` (16 transducers, end echoes: 18
 coherence groups, the largest Grams of the set).
@@ -57,14 +57,14 @@ def main() -> int:
         result = analyze(baseline, current, wall_mm=current.wall_mm)
         times.append(time.perf_counter() - start)
     tables = list(multipath._tables.values())
-    inverses = multipath._gram_inverse_total.cache
+    whitenings = multipath._gram_whitening_total.cache
     print(f"analyze() of {args.case}, 1 mm x 1 deg, one thread, numba kernels: "
           f"{'yes' if gather.compiled() else 'no (numpy fallback)'}")
-    print(f"  first call (gather tables, Gram inverse built): {times[0]:7.2f} s")
+    print(f"  first call (gather tables, Gram whitening built): {times[0]:7.2f} s")
     print(f"  second call (both cached)                     : {times[1]:7.2f} s")
     print(f"  peak RSS: {before:.2f} GB before, {peak_rss_gb():.2f} GB after")
     print(f"  cached: {len(tables)} gather tables, {sum(t.nbytes for t in tables) / 1e6:.0f} MB; "
-          f"{len(inverses)} Gram inverses, {inverses.currsize / 1e6:.0f} MB")
+          f"{len(whitenings)} Gram whitenings, {whitenings.currsize / 1e6:.0f} MB")
     print("  reported: " + ("; ".join(f"{d.axial_mm:.1f} mm {d.angle_deg:.1f} deg (DI {d.di:.3f})"
                                       for d in result.defects) or "nothing"))
     return 0

@@ -23,9 +23,10 @@ imaging/paths.py): sum over pairs of paths in the group of w_a w_b r(|k_a - k_b|
 noise correlation (imaging/arrivals.py ``analytic_noise_correlation``); paths outside the record
 (k = n) count nothing. Compiled with numba, numpy fallback; tests hold them equal.
 
-5. ``joint_power``: per pixel b^H M^-1 b, b the groups' sums and M^-1 the inverse cross-Gram (4),
-held as its Hermitian part's upper triangle (``pack_hermitian``: half the numbers), block by block of
-pixels in real arithmetic the compiler vectorises.
+5. ``joint_power``: per pixel b^H M^-1 b = |W b|^2, b the groups' sums, M the cross-Gram (4) and W
+its whitening (W^H W = M^-1, lower-triangular: the inverse of M's Cholesky factor), held as its
+lower triangle (``pack_lower``; a map's full grid in single precision: a quarter of the bytes of the
+whole inverse in double), block by block of pixels in real arithmetic the compiler vectorises.
 
 4. ``cross_gram``: the same across groups, complex — the groups' cross-Gram of one receiver,
 sum over pairs (a, b) of paths of w_a w_b C(k_b - k_a) into (group of a, group of b), C the
@@ -286,43 +287,48 @@ def cross_gram(groups: np.ndarray, idx: np.ndarray, w: np.ndarray, covariance: n
     return out
 
 
-PACK_CHUNK = 4096  # pixels packed at a time (bounds pack_hermitian's temporaries)
+PACK_CHUNK = 4096  # pixels packed at a time (bounds pack_lower's temporaries)
 PIXEL_BLOCK = 512  # joint_power's pixels at a time (a block's sums and sums so far stay in cache)
 
 
-def pack_hermitian(matrices: np.ndarray) -> np.ndarray:
-    """Per-pixel Hermitian forms [..., G, G] (as ``np.linalg.inv`` returns them) -> the layout
-    ``joint_power`` reads: [2, G (G + 1) / 2, n_pixels] float64, the real and imaginary parts of the
-    upper triangle of each matrix's Hermitian part, row by row (numpy's ``triu_indices`` order), the
-    terms above the diagonal doubled. Re b^H M b = b^H ((M + M^H) / 2) b = sum over the triangle of
-    Re(conj(b_g) M_gh b_h) x (1 on the diagonal, 2 above it): nothing the power uses is lost, half the
-    numbers are read, and each run along the pixels is one the compiler vectorises."""
-    n_groups = matrices.shape[-1]
-    flat = matrices.reshape(-1, n_groups * n_groups)
-    rows, cols = np.triu_indices(n_groups)
-    upper, lower = rows * n_groups + cols, cols * n_groups + rows
-    factor = np.where(rows == cols, 0.5, 1.0)  # (M + M^H) / 2, doubled above the diagonal
-    out = np.empty((2, rows.size, flat.shape[0]))
+def pack_lower(factors: np.ndarray, dtype: type = np.float32) -> np.ndarray:
+    """Per-pixel lower-triangular factors W [..., G, G] (the whitening of a Gram M: W^H W = M^-1) -> the
+    layout ``joint_power`` reads: [2, G (G + 1) / 2, n_pixels] of ``dtype``, the real and imaginary parts
+    of each factor's lower triangle, row by row (numpy's ``tril_indices`` order). Single precision (the
+    default, a map's full grid): a whitened sum |W b|^2 adds squares, nothing in it cancels, so W's
+    rounding (~6e-8 of each term) moves the power by about cond(W) x 6e-8 of itself (cond(W) =
+    sqrt(cond(M)) <= ~1.5e3 with the ridge), where the Hermitian form b^H M^-1 b read in single precision
+    moves by up to cond(M) x 6e-8. Half the bytes of double, read once per pixel of every map."""
+    n_groups = factors.shape[-1]
+    flat = factors.reshape(-1, n_groups * n_groups)
+    rows, cols = np.tril_indices(n_groups)
+    lower = rows * n_groups + cols
+    out: np.ndarray = np.empty((2, rows.size, flat.shape[0]), dtype=dtype)
     for start in range(0, flat.shape[0], PACK_CHUNK):
-        chunk = flat[start:start + PACK_CHUNK]
-        part = ((chunk[:, upper] + np.conj(chunk[:, lower])) * factor).T
+        part = flat[start:start + PACK_CHUNK][:, lower].T
         out[0, :, start:start + PACK_CHUNK] = part.real
         out[1, :, start:start + PACK_CHUNK] = part.imag
     return out
 
 
 def joint_power_numpy(sums: np.ndarray, packed: np.ndarray) -> np.ndarray:
-    """[n_pixels]: Re sum_gh conj(b_g) M_gh b_h per pixel, ``sums`` b [G, n_pixels], ``packed`` M as
-    ``pack_hermitian`` holds it."""
-    rows, cols = np.triu_indices(sums.shape[0])
+    """[n_pixels]: |W b|^2 = b^H M^-1 b per pixel, ``sums`` b [G, n_pixels], ``packed`` W as ``pack_lower``
+    holds it."""
     b = sums.astype(np.complex128)
-    return np.sum((np.conj(b[rows]) * (packed[0] + 1j * packed[1]) * b[cols]).real, axis=0)
+    power = np.zeros(b.shape[1:])
+    first = 0
+    for g in range(b.shape[0]):  # row g of the triangle: terms first .. first + g
+        w = packed[0, first:first + g + 1].astype(np.float64) + 1j * packed[1, first:first + g + 1]
+        whitened = np.sum(w * b[:g + 1], axis=0)
+        power += whitened.real**2 + whitened.imag**2
+        first += g + 1
+    return power
 
 
 def _joint_power_loops(sums, packed, out):  # pragma: no cover - numba
     n_groups, n_pix = sums.shape
     real, imag = packed[0], packed[1]
-    br = np.empty((n_groups, PIXEL_BLOCK))  # a block's sums in double: the form cancels
+    br = np.empty((n_groups, PIXEL_BLOCK))  # a block's sums in double
     bi = np.empty((n_groups, PIXEL_BLOCK))
     acc_r = np.empty(PIXEL_BLOCK)
     acc_i = np.empty(PIXEL_BLOCK)
@@ -336,18 +342,19 @@ def _joint_power_loops(sums, packed, out):  # pragma: no cover - numba
             out[start + x] = 0.0
         k = 0
         for g in range(n_groups):
-            for x in range(n):
-                acc_r[x] = 0.0
-                acc_i[x] = 0.0
-            for h in range(g, n_groups):
+            acc_r[:n] = 0.0
+            acc_i[:n] = 0.0
+            for h in range(g + 1):
+                wr = real[k, start:start + n]  # 1-D runs: the compiler vectorises the loop below
+                wi = imag[k, start:start + n]  # (indexed 2-D, it stayed scalar: ~2x slower)
+                b_r = br[h]
+                b_i = bi[h]
                 for x in range(n):
-                    pr = real[k, start + x]
-                    pi = imag[k, start + x]
-                    acc_r[x] += pr * br[h, x] - pi * bi[h, x]
-                    acc_i[x] += pr * bi[h, x] + pi * br[h, x]
+                    acc_r[x] += wr[x] * b_r[x] - wi[x] * b_i[x]
+                    acc_i[x] += wr[x] * b_i[x] + wi[x] * b_r[x]
                 k += 1
             for x in range(n):
-                out[start + x] += br[g, x] * acc_r[x] + bi[g, x] * acc_i[x]
+                out[start + x] += acc_r[x] * acc_r[x] + acc_i[x] * acc_i[x]
 
 
 def _compile_joint_power():
@@ -361,7 +368,7 @@ joint_power_compiled = _compile_joint_power()
 def joint_power(sums: np.ndarray, packed: np.ndarray) -> np.ndarray:
     """``joint_power_numpy``'s result (same pixel layout as ``sums[0]``), by the compiled kernel when available.
 
-    ``sums`` [G, ...]; ``packed`` (``pack_hermitian``) for the pixels in ``sums[0]``'s C order. The
+    ``sums`` [G, ...]; ``packed`` (``pack_lower``) for the pixels in ``sums[0]``'s C order. The
     kernel goes block by block of pixels, each triangle term a run along the block in real arithmetic
     (vectorised: ~2x faster than the whole complex matrix read pixel run by pixel run, and than the
     packed triangle read pixel by pixel; bench/bench_imaging.py, docs/benchmarks.md)."""

@@ -56,7 +56,7 @@ from imaging.arrivals import (
 )
 from imaging.dimap import DIMap, check_compatible
 from imaging.features import residual_feature
-from imaging.gather import accumulate, coherent_energy, cross_gram, joint_power, local_sums_compiled, pack_hermitian
+from imaging.gather import accumulate, coherent_energy, cross_gram, joint_power, local_sums_compiled, pack_lower
 from imaging.grid import Grid
 from imaging.measurement import Measurement
 from imaging.paths import PathModel, coherence_groups, scalar_paths, scatter_paths, sparse_ring, stacked_paths
@@ -65,10 +65,10 @@ from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 NORMALISATIONS = ("snr", "amplitude")
-LOCAL_GRAM_CACHE = 128  # small grids' Gram inverses kept (a 17 x 17 grid's: ~0.3 MB with 8 groups)
-GRAM_RIDGE = 1e-6  # the groups' cross-Gram is inverted with this fraction of its largest diagonal term added
+LOCAL_GRAM_CACHE = 128  # small grids' Gram whitenings kept (a 17 x 17 grid's: ~0.1 MB with 8 groups)
+GRAM_RIDGE = 1e-6  # the groups' cross-Gram is factored (whitened) with this fraction of its largest diagonal term added
 #                   to the diagonal (a group without paths there, or two coinciding ones, stay finite)
-GRAM_BLOCK_PIXELS = 1 << 13  # a grid's Grams are summed and inverted this many pixels (whole rings) at a time
+GRAM_BLOCK_PIXELS = 1 << 13  # a grid's Grams are summed and factored this many pixels (whole rings) at a time
 REFLECTION_QUANTUM = 0.05  # end reflection coefficients are used to the nearest 0.05
 WRAP_QUANTUM_MM = 0.5  # ... and a sparse ring's fitted wrap length to the nearest 0.5 mm (0.15 % of the paper's)
 # A sparse ring is modelled element by element only where its baseline shows it: the element model
@@ -92,16 +92,16 @@ def _reciprocal(den: np.ndarray) -> np.ndarray:
 
 
 def _combine(groups: np.ndarray, weight_sq: np.ndarray, normalise: str,
-             inverse_weight_sq: np.ndarray | None = None, gram_inverse: np.ndarray | None = None) -> np.ndarray:
+             inverse_weight_sq: np.ndarray | None = None, whitening: np.ndarray | None = None) -> np.ndarray:
     """Groups [n_groups, ...] and their summed squared weights -> the map (module docstring).
 
     ``inverse_weight_sq``: ``_reciprocal(weight_sq)`` when it is at hand (cached with the tables).
-    ``gram_inverse``: the (ridged) inverse of the groups' cross-Gram, packed (``gram_inverse``); with
+    ``whitening``: the whitening of the groups' (ridged) cross-Gram M, packed (``gram_whitening``); with
     it a coherent map projects on the groups jointly (b^H M^-1 b) instead of adding their powers."""
     total_sq = np.sum(weight_sq, axis=0)
     if np.iscomplexobj(groups):
-        if gram_inverse is not None:
-            joint = joint_power(groups, gram_inverse)
+        if whitening is not None:
+            joint = joint_power(groups, whitening)
             snr = np.sqrt(np.maximum(joint, 0.0) / groups.shape[0])
             return snr if normalise == "snr" else _safe_divide(snr * np.sqrt(groups.shape[0]), np.sqrt(total_sq))
         if inverse_weight_sq is None:
@@ -188,10 +188,10 @@ _cached_table = cached(_tables, lock=threading.Lock())(build_table)
 
 # A grid's sums over its receivers, kept the same way (by bytes: a receiver mask that changes, a
 # node whose channel comes and goes, makes a new entry; 32 by count were 0.8 GB of coarse 16-ring
-# Gram inverses, or 12 GB of 1 mm x 1 deg ones).
-GRAM_CACHE_BYTES = 1 << 30  # Gram inverses: ~40 coarse 16-ring maps' with end echoes (26 MB), two 1 mm maps' (0.39 GB)
+# Gram inverses in double, or 12 GB of 1 mm x 1 deg ones).
+GRAM_CACHE_BYTES = 1 << 30  # Gram whitenings: ~80 coarse 16-ring maps' with end echoes (13 MB), five 1 mm maps' (0.2 GB)
 WEIGHT_CACHE_BYTES = 1 << 28  # per-group weight sums: ~90 coarse 16-ring maps' (2.8 MB), six 1 mm maps' (42 MB)
-_gram_inverses: LRUCache = LRUCache(maxsize=GRAM_CACHE_BYTES, getsizeof=lambda inverse: inverse.nbytes)
+_gram_whitenings: LRUCache = LRUCache(maxsize=GRAM_CACHE_BYTES, getsizeof=lambda whitening: whitening.nbytes)
 _weight_sums: LRUCache = LRUCache(maxsize=WEIGHT_CACHE_BYTES, getsizeof=lambda sums: sum(a.nbytes for a in sums))
 
 
@@ -276,14 +276,19 @@ def _weight_sq_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: Pat
     return total, inverse
 
 
-def gram_inverse(gram: np.ndarray) -> np.ndarray:
-    """The inverse of each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, packed
-    as ``joint_power`` reads it (``pack_hermitian``: [2, G (G + 1) / 2, n_pixels]).
+def gram_whitening(gram: np.ndarray, dtype: type = np.float32) -> np.ndarray:
+    """Each pixel's cross-Gram [G, G, ...] with GRAM_RIDGE on its diagonal, as the whitening ``joint_power``
+    reads (``pack_lower``: [2, G (G + 1) / 2, n_pixels] of ``dtype``): W = L^-1, L the Cholesky factor of
+    the ridged Gram (M = L L^H), so that W^H W = M^-1 and |W b|^2 = b^H M^-1 b.
 
     ``gram`` itself gets the ridge (callers pass a sum they drop): no ridged copy of it is made."""
     stacked = np.moveaxis(gram, (0, 1), (-2, -1))
+    diagonal = np.arange(stacked.shape[-1])
+    empty = stacked[..., diagonal, diagonal].real.max(axis=-1) <= 0  # no path to the pixel: nothing to whiten
     _add_ridge(stacked)
-    return pack_hermitian(np.linalg.inv(stacked))
+    factors = np.linalg.inv(np.linalg.cholesky(stacked))
+    factors[empty] = 0.0  # (1 / sqrt of the ridge's floor would overflow single precision; its sums are 0)
+    return pack_lower(factors, dtype)
 
 
 def _add_ridge(stacked: np.ndarray) -> None:
@@ -301,26 +306,26 @@ def _with_ridge(stacked: np.ndarray) -> np.ndarray:
     return out
 
 
-@cached(_gram_inverses, lock=threading.Lock())
-def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
-                        t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
-                        mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
-    """The inverse of the groups' cross-Gram summed over the healthy receivers, packed for each of the
-    grid's pixels (``gram_inverse``; a plane-wave model's: one path per group and receiver).
+@cached(_gram_whitenings, lock=threading.Lock())
+def _gram_whitening_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: PathModel, velocity_m_s: float,
+                          t0_s: float, fs_hz: float, n_samples: int, power: int, excitation_hz: float, cycles: int,
+                          mask: tuple[bool, ...], burst: tuple[float, int]) -> np.ndarray:
+    """The whitening of the groups' cross-Gram summed over the healthy receivers, packed for each of the
+    grid's pixels (``gram_whitening``; a plane-wave model's: one path per group and receiver).
     ``burst``: (excitation_hz, cycles) of the feature.
 
-    Summed and inverted GRAM_BLOCK_PIXELS at a time (whole rings of pixels, so that a shared table's
+    Summed and factored GRAM_BLOCK_PIXELS at a time (whole rings of pixels, so that a shared table's
     turn round the pipe stays inside the block), each table's Gram computed once per block for all
     the receivers that share it (``_add_turns``): a 1 mm x 1 deg map's Grams are ~0.75 GB, and with
     the sum, a receiver's and the inverse alive together the first 16-ring ``analyze`` of a record
-    with end echoes peaked at 2.9 GB; now 0.92 GB, of which the packed inverse kept is 0.39
-    (docs/benchmarks.md)."""
+    with end echoes peaked at 2.9 GB; then 0.92 GB, of which the packed inverse (double) kept was 0.39,
+    the packed whitening (single) kept now 0.2 (docs/benchmarks.md)."""
     n_groups = coherence_groups(model)
     covariance = analytic_noise_covariance(fs_hz, *burst)
     tables = [(_cached_table(grid, angle, model, velocity_m_s, t0_s, fs_hz, n_samples, power, excitation_hz, cycles),
                turns) for angle, turns in _turns_by_table(plan, mask).items()]
     n_axial, n_angle = grid.shape
-    inverse = np.empty((2, n_groups * (n_groups + 1) // 2, n_axial * n_angle))
+    whitening = np.empty((2, n_groups * (n_groups + 1) // 2, n_axial * n_angle), dtype=np.float32)
     rows = max(1, GRAM_BLOCK_PIXELS // n_angle)  # the rolls turn the pipe: a block is whole rings of pixels
     for first in range(0, n_axial, rows):
         block = np.zeros((n_groups, n_groups, min(rows, n_axial - first), n_angle), dtype=np.complex128)
@@ -328,9 +333,9 @@ def _gram_inverse_total(grid: Grid, plan: tuple[tuple[float, int], ...], model: 
         for table, turns in tables:
             gram = cross_gram(table.groups, table.idx[:, pixels], table.w[:, pixels], covariance, n_groups, n_samples)
             _add_turns(block, gram.reshape(block.shape), turns)  # a shared table's Gram, once for its receivers
-        inverse[:, :, pixels] = gram_inverse(block)
-    inverse.setflags(write=False)
-    return inverse
+        whitening[:, :, pixels] = gram_whitening(block)
+    whitening.setflags(write=False)
+    return whitening
 
 
 def _check_arguments(feature: np.ndarray, scene: Scene, normalise: str) -> None:
@@ -372,16 +377,16 @@ def multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr
             accumulate(total, padded[m], table.groups, table.idx, table.w, roll)
     healthy = tuple(bool(x) for x in mask)
     weight_sq, inverse = _weight_sq_total(grid, plan, *geometry, healthy)
-    gram_inv = (_gram_inverse_total(grid, plan, *geometry, healthy, (scene.excitation_hz, scene.cycles))
-                if coherent and scene.joint_groups and not scene.model.elements else None)
-    return _combine(total, weight_sq, normalise, inverse, gram_inv)
+    whitening = (_gram_whitening_total(grid, plan, *geometry, healthy, (scene.excitation_hz, scene.cycles))
+                 if coherent and scene.joint_groups and not scene.model.elements else None)
+    return _combine(total, weight_sq, normalise, inverse, whitening)
 
 
 def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str = "snr",
                            compiled: bool = True) -> np.ndarray:
     """The same map as ``multipath_pixels`` for a small one-off ``scene.grid`` (a peak's neighbourhood, one pixel).
 
-    Nothing is cached but, for ``scene.joint_groups``, the grid's Gram inverse: every receiver's paths to every pixel are computed here in double
+    Nothing is cached but, for ``scene.joint_groups``, the grid's Gram whitening: every receiver's paths to every pixel are computed here in double
     precision and the feature gathered directly, by the compiled kernel of imaging/gather.py
     (``compiled`` and numba installed) or in numpy. Cost grows as n_rx x n_paths x n_pixels:
     keep the grid to a few hundred pixels.
@@ -406,18 +411,18 @@ def local_multipath_pixels(feature: np.ndarray, scene: Scene, *, normalise: str 
                             float(c_mm_s), scene.t0_s, scene.fs_hz, int(power), groups, weight_sq)
     elif rows.size:  # numpy; always for a model with Tx elements (the compiled kernel has no element images)
         groups, weight_sq = _local_numpy_sums(feature, scene, rows)
-    gram_inv = (_local_gram_inverse(grid, model, tuple(float(a) for a in rx_angles_deg[rows]), scene.velocity_m_s,
-                                    scene.t0_s, scene.fs_hz, feature.shape[1], int(power), scene.excitation_hz,
-                                    scene.cycles)
-                if coherent and scene.joint_groups and not model.elements else None)
-    return _combine(groups, weight_sq, normalise, gram_inverse=gram_inv)
+    whitening = (_local_gram_whitening(grid, model, tuple(float(a) for a in rx_angles_deg[rows]), scene.velocity_m_s,
+                                       scene.t0_s, scene.fs_hz, feature.shape[1], int(power), scene.excitation_hz,
+                                       scene.cycles)
+                 if coherent and scene.joint_groups and not model.elements else None)
+    return _combine(groups, weight_sq, normalise, whitening=whitening)
 
 
 @lru_cache(maxsize=LOCAL_GRAM_CACHE)
-def _local_gram_inverse(grid: Grid, model: PathModel, rx_angles_deg: tuple[float, ...], velocity_m_s: float,
-                        t0_s: float, fs_hz: float, n: int, power: int, excitation_hz: float,
-                        cycles: int) -> np.ndarray:
-    """``_gram_inverse_total`` for a small grid (plane-wave model; the healthy receivers' angles), computed
+def _local_gram_whitening(grid: Grid, model: PathModel, rx_angles_deg: tuple[float, ...], velocity_m_s: float,
+                          t0_s: float, fs_hz: float, n: int, power: int, excitation_hz: float,
+                          cycles: int) -> np.ndarray:
+    """``_gram_whitening_total`` for a small grid (plane-wave model; the healthy receivers' angles), computed
     directly. Cached: a node's records of one defect refine their peaks on the same small grids."""
     c_mm_s = velocity_m_s * MM_PER_M
     n_groups = coherence_groups(model)
@@ -431,9 +436,9 @@ def _local_gram_inverse(grid: Grid, model: PathModel, rx_angles_deg: tuple[float
         inside = (k >= 0) & (k < n)
         total += cross_gram(family, np.where(inside, k, n).astype(np.int64),
                             (weight ** power).reshape(family.size, -1), covariance, n_groups, n)
-    inverse = gram_inverse(total.reshape((n_groups, n_groups) + grid.shape))
-    inverse.setflags(write=False)
-    return inverse
+    whitening = gram_whitening(total.reshape((n_groups, n_groups) + grid.shape), np.float64)  # as exact as the sums
+    whitening.setflags(write=False)
+    return whitening
 
 
 def _local_numpy_sums(feature: np.ndarray, scene: Scene, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

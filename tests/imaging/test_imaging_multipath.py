@@ -108,51 +108,51 @@ def _joint_problem(mask: np.ndarray) -> tuple[np.ndarray, Scene]:
                           joint_groups=True, velocity_m_s=3250.0, t0_s=0.0, fs_hz=1e6)
 
 
-def test_a_grids_gram_inverses_are_kept_by_bytes_not_by_count(monkeypatch):
-    # A receiver mask that changes (a channel that comes and goes) makes another inverse: what is kept
+def test_a_grids_gram_whitenings_are_kept_by_bytes_not_by_count(monkeypatch):
+    # A receiver mask that changes (a channel that comes and goes) makes another whitening: what is kept
     # is bounded by bytes, and one larger than the whole budget is used, not kept.
     feature, scene = _joint_problem(np.ones(6, bool))
     _, other = _joint_problem(np.arange(6) != 2)
     expected = literal_multipath_pixels(feature, scene)
 
-    kept = multipath._gram_inverse_total.cache
-    multipath._gram_inverse_total.cache_clear()
+    kept = multipath._gram_whitening_total.cache
+    multipath._gram_whitening_total.cache_clear()
     multipath_pixels(feature, scene)
-    inverse_bytes = kept.currsize
+    whitening_bytes = kept.currsize
     groups = coherence_groups(scene.model)
-    assert len(kept) == 1 and inverse_bytes == 2 * groups * (groups + 1) // 2 * 7 * 36 * 8  # [2, G (G + 1) / 2, pixels]
+    assert len(kept) == 1 and whitening_bytes == 2 * groups * (groups + 1) // 2 * 7 * 36 * 4  # [2, G (G + 1) / 2, pixels]
     assert kept.maxsize == multipath.GRAM_CACHE_BYTES
 
     def budget(max_bytes: int) -> cachetools.LRUCache:
         cache = cachetools.LRUCache(maxsize=max_bytes, getsizeof=kept.getsizeof)
-        monkeypatch.setattr(multipath, "_gram_inverse_total",
-                            cachetools.cached(cache)(multipath._gram_inverse_total.__wrapped__))
+        monkeypatch.setattr(multipath, "_gram_whitening_total",
+                            cachetools.cached(cache)(multipath._gram_whitening_total.__wrapped__))
         return cache
 
-    room_for_one = budget(inverse_bytes)
+    room_for_one = budget(whitening_bytes)
     np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=0, atol=2e-5 * np.abs(expected).max())
     multipath_pixels(feature, other)  # another mask: room is made
-    assert len(room_for_one) == 1 and room_for_one.currsize == inverse_bytes
-    too_small = budget(inverse_bytes - 1)
+    assert len(room_for_one) == 1 and room_for_one.currsize == whitening_bytes
+    too_small = budget(whitening_bytes - 1)
     np.testing.assert_allclose(multipath_pixels(feature, scene), expected, rtol=0, atol=2e-5 * np.abs(expected).max())
     assert len(too_small) == 0
 
 
 @pytest.mark.parametrize("healthy", [6, 5])  # all six receivers (one table turned six times round), or one off
 @pytest.mark.parametrize("block_pixels", [5, 36, 72, 1 << 13])
-def test_a_joint_maps_gram_inverse_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels,
+def test_a_joint_maps_gram_whitening_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels,
                                                                                             healthy):
-    # A 1 mm x 1 deg map's Grams would be ~0.75 GB at once: they are summed and inverted whole rings
+    # A 1 mm x 1 deg map's Grams would be ~0.75 GB at once: they are summed and factored whole rings
     # of pixels at a time (GRAM_BLOCK_PIXELS; fewer pixels than a ring: one ring). Receivers on the
     # grid share a table turned round the pipe, and a turn never crosses a block: 1, 2 (7 rows =
     # 2 + 2 + 2 + 1) or all rows at a time give the literal per-pixel map.
     feature, scene = _joint_problem(np.arange(6) != (2 if healthy < 6 else -1))
     monkeypatch.setattr(multipath, "GRAM_BLOCK_PIXELS", block_pixels)
-    multipath._gram_inverse_total.cache_clear()
+    multipath._gram_whitening_total.cache_clear()
     try:
         fast = multipath_pixels(feature, scene)
     finally:
-        multipath._gram_inverse_total.cache_clear()  # no inverse built with this block size is kept
+        multipath._gram_whitening_total.cache_clear()  # no whitening built with this block size is kept
     literal = literal_multipath_pixels(feature, scene)
     np.testing.assert_allclose(fast, literal, rtol=0, atol=2e-5 * float(np.abs(literal).max()))
 
@@ -224,6 +224,50 @@ def test_noise_alone_is_not_detected_and_a_scatterer_is():
     assert loud.as_json()["detected"] is True and loud.as_json()["method"] == "multipath"
 
 
+def _ridged(grams: np.ndarray) -> np.ndarray:
+    """[pixel, G, G] Grams with multipath.GRAM_RIDGE of their largest diagonal term on the diagonal."""
+    largest = np.einsum("xgg->xg", grams).real.max(axis=1)
+    return grams + multipath.GRAM_RIDGE * largest[:, None, None] * np.eye(grams.shape[1])
+
+
+def test_the_whitened_power_holds_in_single_precision_where_the_inverse_gram_would_not():
+    # Two groups whose paths nearly coincide make the Gram as ill-conditioned as the ridge lets it be
+    # (cond ~2e6). The power is read as |W b|^2 with W = L^-1 held in single precision: a sum of
+    # squares, so W's rounding moves it by ~sqrt(cond) x 6e-8. The inverse Gram itself held in single
+    # precision (the Hermitian form b^H M^-1 b) moves it by up to cond x 6e-8 of itself.
+    rng = np.random.default_rng(3)
+    n_groups, n_pix = 6, 200
+    columns = rng.standard_normal((n_pix, 40, n_groups)) + 1j * rng.standard_normal((n_pix, 40, n_groups))
+    columns[:, :, 1] = columns[:, :, 0] + 1e-4 * columns[:, :, 1]  # groups 0 and 1 all but the same
+    grams = np.einsum("xkg,xkh->xgh", columns.conj(), columns)
+    sums = rng.standard_normal((n_groups, n_pix)) + 1j * rng.standard_normal((n_groups, n_pix))
+    sums[1] = sums[0]  # what both nearly coinciding groups see alike: M^-1's large terms cancel in the form
+    exact_inverse = np.linalg.inv(_ridged(grams))
+    exact = np.einsum("gx,xgh,hx->x", sums.conj(), exact_inverse, sums).real
+    whitened = gather.joint_power(sums, multipath.gram_whitening(np.moveaxis(grams, 0, -1).copy()))
+    single_inverse = np.einsum("gx,xgh,hx->x", sums.conj(), exact_inverse.astype(np.complex64).astype(np.complex128),
+                               sums).real
+    assert float(np.max(np.abs(whitened - exact) / exact)) < 1e-5  # measured 7e-7
+    assert float(np.max(np.abs(single_inverse - exact) / exact)) > 1e-3  # measured 0.03
+
+
+def test_a_pixel_no_path_reaches_has_no_power_and_no_overflow():
+    # An empty Gram (no group has a path there) would whiten to 1 / sqrt of the ridge's floor,
+    # beyond single precision: its whitening is zero instead, and its power 0 (its sums are 0).
+    rng = np.random.default_rng(8)
+    grams = np.zeros((3, 3, 2), dtype=np.complex128)
+    columns = rng.standard_normal((20, 3)) + 1j * rng.standard_normal((20, 3))
+    grams[:, :, 1] = columns.conj().T @ columns
+    with np.errstate(all="raise"):
+        packed = multipath.gram_whitening(grams.copy())
+    assert np.all(np.isfinite(packed)) and not np.any(packed[:, :, 0])
+    sums = np.zeros((3, 2), dtype=np.complex64)
+    sums[:, 1] = [1.0, 2.0j, -1.0]
+    power = gather.joint_power(sums, packed)
+    exact = np.vdot(sums[:, 1], np.linalg.solve(_ridged(grams[None, :, :, 1])[0], sums[:, 1])).real
+    assert power[0] == 0.0 and power[1] == pytest.approx(exact, rel=1e-5)
+
+
 @pytest.mark.skipif(not gather.compiled(), reason="numba is not installed")
 def test_compiled_cross_gram_and_joint_power_equal_their_numpy_sums():
     rng = np.random.default_rng(11)
@@ -238,9 +282,9 @@ def test_compiled_cross_gram_and_joint_power_equal_their_numpy_sums():
     np.testing.assert_allclose(per_pixel, np.conj(np.swapaxes(per_pixel, 1, 2)), atol=1e-12)  # Hermitian
     assert np.all(np.linalg.eigvalsh(per_pixel) > -1e-9)  # a covariance: positive semi-definite
     sums = rng.standard_normal((4, 30)) + 1j * rng.standard_normal((4, 30))
-    inverse = np.linalg.inv(per_pixel + 1e-3 * np.eye(4))  # [pixel, G, G]
-    full = np.einsum("xg,xgh,xh->x", sums.T.conj(), inverse, sums.T).real  # b^H M^-1 b, the whole matrix
-    packed = gather.pack_hermitian(inverse)
-    assert packed.shape == (2, 10, 30)  # 4 x 5 / 2 complex numbers a pixel
-    np.testing.assert_allclose(gather.joint_power(sums, packed), full, rtol=1e-9)
-    np.testing.assert_allclose(gather.joint_power_numpy(sums, packed), full, rtol=1e-9)
+    ridged = per_pixel + 1e-3 * np.eye(4)
+    full = np.einsum("xg,xgh,xh->x", sums.T.conj(), np.linalg.inv(ridged), sums.T).real  # b^H M^-1 b, whole
+    packed = gather.pack_lower(np.linalg.inv(np.linalg.cholesky(ridged)))  # W = L^-1: W^H W = M^-1
+    assert packed.shape == (2, 10, 30) and packed.dtype == np.float32  # 4 x 5 / 2 complex numbers a pixel
+    np.testing.assert_allclose(gather.joint_power(sums, packed), full, rtol=1e-5)  # W held in single precision
+    np.testing.assert_allclose(gather.joint_power_numpy(sums, packed), gather.joint_power(sums, packed), rtol=1e-12)
