@@ -131,21 +131,37 @@ def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[f
     n_rx, n = residual.shape
     waves = group_waves(scene, positions, n, lags_rad, backward)  # [m, pos, g, 2, n]
     n_pos = len(positions)
-    columns = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
+    every = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
+    # Only the columns some receiver's record holds, over the samples any of them reaches: a group none of
+    # whose paths reaches the record on any receiver is a zero row and column of every Gram below, which
+    # the pseudo-inverse maps to zero (its cut-off is relative to the largest eigenvalue, which they do not
+    # change), and samples no column reaches add nothing. Left out, the fit is the same and its matrices
+    # smaller (a sparse ring's two-defect fit: a third of 216 columns, a fifth of the samples).
+    support = np.any(every, axis=0)  # [a, n]
+    live = np.flatnonzero(np.any(support, axis=1))
+    reached = np.flatnonzero(np.any(support, axis=0))
+    if not live.size:  # no echo of any position reaches the record: nothing to fit
+        return [np.zeros((n_rx, n)) for _ in positions]
+    span = slice(int(reached[0]), int(reached[-1]) + 1)
+    columns = np.ascontiguousarray(every[:, live, span])
     gram = np.einsum("man,mbn->mab", columns, columns, optimize=True)
-    rhs = np.einsum("man,mn->ma", columns, residual, optimize=True)
+    rhs = np.einsum("man,mn->ma", columns, residual[:, span], optimize=True)
     if not shared:
         coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
     else:
-        per_column = columns.shape[1] // n_pos
-        wc = np.repeat(_bearing_basis(scene, positions, orders), per_column, axis=1)  # [m, a, K]
+        per_column = every.shape[1] // n_pos
+        wc = np.repeat(_bearing_basis(scene, positions, orders), per_column, axis=1)[:, live]  # [m, a, K]
         n_basis = wc.shape[-1]
-        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(columns.shape[1] * n_basis, -1)
+        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(live.size * n_basis, -1)
         big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
         unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
-        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(columns.shape[1], n_basis))
-    fitted = np.einsum("mpan,mpa->mpn", waves.reshape(n_rx, n_pos, -1, n), coef.reshape(n_rx, n_pos, -1), optimize=True)
-    return [np.ascontiguousarray(fitted[:, p]) for p in range(n_pos)]
+        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(live.size, n_basis))
+    owner = live // (every.shape[1] // n_pos)
+    fitted = [np.zeros((n_rx, n)) for _ in positions]
+    for p in range(n_pos):
+        own = owner == p
+        fitted[p][:, span] = np.einsum("man,ma->mn", columns[:, own], coef[:, own], optimize=True)
+    return fitted
 
 
 def fit_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]]) -> list[np.ndarray]:

@@ -168,6 +168,46 @@ def test_the_echo_fit_of_an_element_model_recovers_echoes_made_by_the_same_model
     assert float(np.sum((record - elsewhere) ** 2)) > 0.5 * float(np.sum(record**2))  # the wrong place explains little
 
 
+def _dense_group_fit(record: np.ndarray, scene: Scene, positions: list, shared: bool) -> list[np.ndarray]:
+    """The element model's fit written out over every column and sample: the oracle of the fit that leaves
+    out what no record reaches."""
+    waves = group_waves(scene, positions, record.shape[1])
+    n_rx, n_pos = waves.shape[:2]
+    columns = waves.reshape(n_rx, -1, record.shape[1])
+    gram, rhs = columns @ columns.transpose(0, 2, 1), columns @ record[:, :, None]
+    if not shared:
+        coef = (np.linalg.pinv(gram, rtol=1e-6, hermitian=True) @ rhs)[:, :, 0]
+    else:  # one amplitude per column, the same on every receiver (SMOOTH_ORDERS = 0)
+        coef = np.broadcast_to(np.linalg.pinv(gram.sum(axis=0), rtol=1e-6, hermitian=True) @ rhs.sum(axis=0)[:, 0],
+                               (n_rx, columns.shape[1]))
+    fitted = np.einsum("mpan,mpa->mpn", waves.reshape(n_rx, n_pos, -1, record.shape[1]), coef.reshape(n_rx, n_pos, -1))
+    return [fitted[:, p] for p in range(n_pos)]
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_an_element_models_fit_leaves_out_what_no_record_reaches_and_fits_the_same(shared):
+    # A short record: many of a position's path groups reach it on no receiver (zero columns) and the
+    # last samples no echo reaches. Left out, the fit is the written-out one's; a position none of
+    # whose echoes reaches the record is fitted with nothing, alone or beside another.
+    model = _ring_model(8, 75e3, tx_images=1, near_end_mm=-150.0, far_end_mm=550.0, near_reflection=1.0,
+                        far_reflection=1.0)  # end echoes: the groups of paths by way of either end
+    scene = _scene(model, Grid(0.0, 4.0, 101, 0.0, 3.75, 96))
+    n, at = 2600, [(180.0, 50.0), (320.0, 200.0)]
+    waves = group_waves(scene, at, n)
+    assert 0.1 < float(np.mean(~np.any(waves, axis=(0, 4)))) < 0.9  # some columns reach no record
+    record = np.einsum("mpgsn,pgs->mn", waves, np.random.default_rng(2).standard_normal(waves.shape[1:4]))
+    record += 0.05 * float(np.std(record)) * np.random.default_rng(3).standard_normal(record.shape)
+    fit = fit_smooth_echoes if shared else fit_echoes
+    for got, want in zip(fit(record, scene, at), _dense_group_fit(record, scene, at, shared), strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * float(np.abs(record).max()))
+    beyond = (-4000.0, 50.0)  # every echo arrives after the record ends
+    assert not np.any(group_waves(scene, [beyond], n))
+    assert not np.any(fit(record, scene, [beyond])[0])
+    alone, beside = fit(record, scene, at[:1])[0], fit(record, scene, [at[0], beyond])
+    np.testing.assert_allclose(beside[0], alone, rtol=0, atol=1e-9 * float(np.abs(record).max()))
+    assert not np.any(beside[1])
+
+
 def test_a_sparse_rings_defect_is_turned_to_the_angle_its_echoes_give_within_half_a_pitch():
     # Echoes of a scatterer at 180 mm 50 deg (one amplitude per path group, as the plain fit models
     # them); a defect placed at the right distance but 15 deg off, as the map's pull towards a
