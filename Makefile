@@ -24,9 +24,10 @@ demo: $(STAMP)
 WORKERS ?= 2
 ONE_THREAD := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 
+# It ends with the 25 slowest tests' times: every CI log says where the suite's time goes.
 test: $(STAMP) lint
 	bash scripts/ensure-test-deps.sh
-	$(ONE_THREAD) $(BIN)/python -m pytest -n $(WORKERS) --dist worksteal
+	$(ONE_THREAD) $(BIN)/python -m pytest -n $(WORKERS) --dist worksteal --durations=25
 
 # The unit tests only (no real processes, PostgreSQL or browser): about a minute.
 test-fast: $(STAMP)
