@@ -1,6 +1,7 @@
 """`pipesentry gateway --config gateway.toml`: run the gateway daemon."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -14,6 +15,9 @@ def gateway(
     check: Annotated[bool, typer.Option("--check", help="validate the config and exit")] = False,
 ) -> None:
     """Poll the configured nodes, store traces and DI maps, recompute the map, flag damage."""
+    from gateway.blas_threads import one_blas_thread
+
+    one_blas_thread(os.environ)  # before numpy loads (gateway.config imports it): one core per node worker
     from gateway.config import ConfigError, load_settings
     from gateway.daemon import run
     from gateway.logs import setup_logging
