@@ -284,9 +284,16 @@ def gram_whitening(gram: np.ndarray, dtype: type = np.float32) -> np.ndarray:
     ``gram`` itself gets the ridge (callers pass a sum they drop): no ridged copy of it is made."""
     stacked = np.moveaxis(gram, (0, 1), (-2, -1))
     diagonal = np.arange(stacked.shape[-1])
-    empty = stacked[..., diagonal, diagonal].real.max(axis=-1) <= 0  # no path to the pixel: nothing to whiten
+    largest = stacked[..., diagonal, diagonal].real.max(axis=-1)
+    empty = largest <= 0  # no path to the pixel: nothing to whiten
     _add_ridge(stacked)
-    factors = np.linalg.inv(np.linalg.cholesky(stacked))
+    try:
+        lower = np.linalg.cholesky(stacked)
+    except np.linalg.LinAlgError:  # a sum rounded indefinite beyond the ridge: its eigenvalues floored at the ridge
+        values, vectors = np.linalg.eigh(stacked)
+        floor = GRAM_RIDGE * np.maximum(largest, 1e-300)[..., None]
+        lower = np.linalg.cholesky((vectors * np.maximum(values, floor)[..., None, :]) @ np.conj(np.swapaxes(vectors, -1, -2)))
+    factors = np.linalg.inv(lower)
     factors[empty] = 0.0  # (1 / sqrt of the ridge's floor would overflow single precision; its sums are 0)
     return pack_lower(factors, dtype)
 

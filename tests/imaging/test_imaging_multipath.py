@@ -251,6 +251,20 @@ def test_the_whitened_power_holds_in_single_precision_where_the_inverse_gram_wou
     assert float(np.max(np.abs(single_inverse - exact) / exact)) > 1e-3  # measured 0.03
 
 
+def test_a_gram_rounded_indefinite_is_whitened_with_its_eigenvalues_floored_not_refused():
+    # A Gram is a covariance, positive semi-definite; one whose sum rounding left an eigenvalue below
+    # minus the ridge has no Cholesky factor: it is whitened as the Gram with that eigenvalue at the
+    # ridge, the rest as they are (the inverse it replaced never refused one either).
+    grams = np.zeros((2, 2, 2), dtype=np.complex128)
+    grams[:, :, 0] = [[2.0, 0.0], [0.0, 1.0]]
+    grams[:, :, 1] = [[1.0, 0.0], [0.0, -1e-3]]  # -1e-3 of the largest: far beyond the ridge (1e-6 of it)
+    packed = multipath.gram_whitening(grams.copy(), np.float64)
+    sums = np.array([[1.0, 1.0], [1.0, 1.0]], dtype=np.complex64)
+    floor = multipath.GRAM_RIDGE * 1.0
+    np.testing.assert_allclose(gather.joint_power(sums, packed),
+                               [1 / (2 + 2e-6) + 1 / (1 + 2e-6), 1 / (1 + floor) + 1 / floor], rtol=1e-9)
+
+
 def test_a_pixel_no_path_reaches_has_no_power_and_no_overflow():
     # An empty Gram (no group has a path there) would whiten to 1 / sqrt of the ridge's floor,
     # beyond single precision: its whitening is zero instead, and its power 0 (its sums are 0).
