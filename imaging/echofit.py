@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -90,9 +91,29 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     (docs/imaging.md, "A backward weight tried beside the lags on sparse rings").
     Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
+    t = _group_terms(scene, positions, n, lags_rad, backward)
+    return group_columns(t.rx, t.pos, t.group, t.starts, t.c, t.s, t.shapes,
+                         (scene.n_rx, len(positions), coherence_groups(scene.model), n))
+
+
+class _Terms(NamedTuple):
+    """``group_waves``' path terms that reach the record: per term its receiver, position, coherence group,
+    start sample, in-phase and quadrature weights (``s`` None: no lag); and the burst pair [2, size]."""
+
+    rx: np.ndarray
+    pos: np.ndarray
+    group: np.ndarray
+    starts: np.ndarray
+    c: np.ndarray
+    s: np.ndarray | None
+    shapes: np.ndarray
+
+
+def _group_terms(scene: Scene, positions: list[tuple[float, float]], n: int, lags_rad: Sequence[float] | None,
+                 backward: Sequence[bool] | None) -> _Terms:
+    """``group_waves``' path terms that reach the record (``_Terms``)."""
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
     size = shapes.shape[1]
-    n_rx, n_pos, n_groups = scene.n_rx, len(positions), coherence_groups(scene.model)
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
     groups, length, weight = stacked_paths(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])  # [P, m, pos]
@@ -109,7 +130,7 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     if lagged:
         phase = (np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, pos]
         c, s = c * np.cos(phase), c * np.sin(phase)
-    return group_columns(m_idx, pos_idx, groups[p_idx], k[keep], c, s, shapes, (n_rx, n_pos, n_groups, n))
+    return _Terms(m_idx, pos_idx, groups[p_idx], k[keep], c, s, shapes)
 
 
 def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: int) -> np.ndarray:
@@ -129,34 +150,32 @@ def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[f
     path, on ``group_waves`` (``lags_rad``: its forward lags; ``backward``: its backward weight): the fit for a
     model with Tx elements."""
     n_rx, n = residual.shape
-    waves = group_waves(scene, positions, n, lags_rad, backward)  # [m, pos, g, 2, n]
-    n_pos = len(positions)
-    every = waves.reshape(n_rx, -1, n)  # [m, a, n], a = (pos, group, shape)
-    # Only the columns some receiver's record holds, over the samples any of them reaches: a group none of
-    # whose paths reaches the record on any receiver is a zero row and column of every Gram below, which
-    # the pseudo-inverse maps to zero (its cut-off is relative to the largest eigenvalue, which they do not
-    # change), and samples no column reaches add nothing. Left out, the fit is the same and its matrices
-    # smaller (a sparse ring's two-defect fit: a third of 216 columns, a fifth of the samples).
-    support = np.any(every, axis=0)  # [a, n]
-    live = np.flatnonzero(np.any(support, axis=1))
-    reached = np.flatnonzero(np.any(support, axis=0))
-    if not live.size:  # no echo of any position reaches the record: nothing to fit
+    n_pos, n_groups = len(positions), coherence_groups(scene.model)
+    t = _group_terms(scene, positions, n, lags_rad, backward)
+    if not t.starts.size:  # no echo of any position reaches the record: nothing to fit
         return [np.zeros((n_rx, n)) for _ in positions]
-    span = slice(int(reached[0]), int(reached[-1]) + 1)
-    columns = np.ascontiguousarray(every[:, live, span])
+    # Only the columns (position, group) some path reaches the record along, over the samples those paths
+    # reach: a group with no path in the record on any receiver is a zero row and column of every Gram below,
+    # which the pseudo-inverse maps to zero (its cut-off is relative to the largest eigenvalue, which they do
+    # not change), and samples no path reaches add nothing. Left out, the fit is the same and its matrices
+    # smaller (a sparse ring's two-defect fit: a third of 216 columns, a fifth of the samples).
+    live, column = np.unique(t.pos * n_groups + t.group, return_inverse=True)
+    span = slice(max(int(t.starts.min()), 0), min(int(t.starts.max()) + t.shapes.shape[1], n))
+    waves = group_columns(t.rx, np.zeros_like(t.pos), column, t.starts - span.start, t.c, t.s, t.shapes,
+                          (n_rx, 1, live.size, span.stop - span.start))  # [m, 1, live, 2, span]
+    columns = waves.reshape(n_rx, 2 * live.size, -1)  # [m, a, span], a = (live column, shape)
+    owner = np.repeat(live // n_groups, 2)  # each column's position
     gram = np.einsum("man,mbn->mab", columns, columns, optimize=True)
     rhs = np.einsum("man,mn->ma", columns, residual[:, span], optimize=True)
     if not shared:
         coef = np.einsum("mab,mb->ma", np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True), rhs)
     else:
-        per_column = every.shape[1] // n_pos
-        wc = np.repeat(_bearing_basis(scene, positions, orders), per_column, axis=1)[:, live]  # [m, a, K]
+        wc = _bearing_basis(scene, positions, orders)[:, owner]  # [m, a, K]
         n_basis = wc.shape[-1]
-        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(live.size * n_basis, -1)
+        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(owner.size * n_basis, -1)
         big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
         unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
-        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(live.size, n_basis))
-    owner = live // (every.shape[1] // n_pos)
+        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(owner.size, n_basis))
     fitted = [np.zeros((n_rx, n)) for _ in positions]
     for p in range(n_pos):
         own = owner == p
