@@ -140,8 +140,8 @@ def test_a_grids_gram_whitenings_are_kept_by_bytes_not_by_count(monkeypatch):
 
 @pytest.mark.parametrize("healthy", [6, 5])  # all six receivers (one table turned six times round), or one off
 @pytest.mark.parametrize("block_pixels", [5, 36, 72, 1 << 13])
-def test_a_joint_maps_gram_whitening_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch, block_pixels,
-                                                                                            healthy):
+def test_a_joint_maps_gram_whitening_built_a_few_rings_of_pixels_at_a_time_is_the_literal_sums(monkeypatch,
+                                                                                              block_pixels, healthy):
     # A 1 mm x 1 deg map's Grams would be ~0.75 GB at once: they are summed and factored whole rings
     # of pixels at a time (GRAM_BLOCK_PIXELS; fewer pixels than a ring: one ring). Receivers on the
     # grid share a table turned round the pipe, and a turn never crosses a block: 1, 2 (7 rows =
