@@ -141,6 +141,19 @@ class MultiDefectError(ValueError):
 
 
 @dataclass(frozen=True)
+class EchoShape:
+    """How a defect's echoes are modelled beyond the map's point: each path's carrier lagging by ``lag_rad``
+    (1 - cos psi), and (``backward``) its amplitude weighted by (1 - cos psi) / 2 (imaging/echofit.py
+    ``group_waves``; a model with Tx elements only)."""
+
+    lag_rad: float = 0.0
+    backward: bool = False
+
+
+PLAIN = EchoShape()  # the map's isotropic point
+
+
+@dataclass(frozen=True)
 class Found:
     """One defect found by the search: the estimate, the map it was the peak of, and its severity."""
 
@@ -149,8 +162,8 @@ class Found:
     severity: float
     runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
     map_peak: Estimate | None = None  # the map's peak, when the position comes from the echo fit instead
-    forward_lag_rad: float = 0.0  # its echoes' forward lag b (1 - cos psi), fitted with its position (sparse rings)
-    backward: bool = False  # its echoes weighted by (1 - cos psi) / 2, where that fits decisively better (sparse rings)
+    shape: EchoShape = PLAIN  # its echoes' shape: a forward lag, the backward weight, where that fits decisively
+    #                           better than the plain point (sparse rings, ``_echo_fit_shape``)
     axial_rivals_mm: tuple[float, ...] = ()  # where along its line its echoes fit nearly as well (``_echo_rivals``)
 
     @property
@@ -264,10 +277,10 @@ class _Search:
         path's amplitude shared by all receivers, a circular harmonic of their bearing up to ``orders``
         (``fit_smooth_echoes``), else one per path and receiver (``fit_echoes``); each path followed
         along ``wraps`` legs round the pipe (imaging/paths.py ``wrap_turns``; default FIT_WRAPS); each
-        defect's echoes with its ``forward_lag_rad`` and ``backward`` weight (shared fits)."""
+        defect's echoes with its ``shape`` (shared fits)."""
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
         scene = dataclasses.replace(self.scene, model=dataclasses.replace(self.scene.model, wraps=wraps or FIT_WRAPS))
-        lags, backward = [f.forward_lag_rad for f in found], [f.backward for f in found]
+        lags, backward = [f.shape.lag_rad for f in found], [f.shape.backward for f in found]
         fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders, lags_rad=lags, backward=backward)
                 if shared
                 else fit_echoes(self.original, scene, positions))
@@ -541,7 +554,7 @@ def _echo_fit_shape(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
     if line is None or line.shape == PLAIN:
         return item
     return dataclasses.replace(item, estimate=dataclasses.replace(item.estimate, axial_mm=line.axial_mm),
-                               forward_lag_rad=line.shape.lag_rad, backward=line.shape.backward,
+                               shape=line.shape,
                                axial_rivals_mm=_echo_rivals(scene, line.axial_mm, line.along_its_shape))
 
 
@@ -614,18 +627,6 @@ def _echo_fit_axial(scene: Scene, item: Found, unexplained_by: Unexplained) -> F
                                map_peak=estimate, axial_rivals_mm=rivals)
 
 
-@dataclass(frozen=True)
-class EchoShape:
-    """How a defect's echoes are modelled beyond the map's point: each path's carrier lagging by ``lag_rad``
-    (1 - cos psi), and (``backward``) its amplitude weighted by (1 - cos psi) / 2 (imaging/echofit.py
-    ``group_waves``; a model with Tx elements only)."""
-
-    lag_rad: float = 0.0
-    backward: bool = False
-
-
-PLAIN = EchoShape()  # the map's isotropic point
-
 
 @dataclass(frozen=True)
 class _LineFit:
@@ -693,8 +694,7 @@ def _line_fit(item: Found, start: Estimate, span: float, first: float, last: flo
 
     def unexplained(z: float, shape: EchoShape) -> float:
         if (z, shape) not in left:
-            at = Found(dataclasses.replace(start, axial_mm=z), item.di_map, item.severity,
-                       forward_lag_rad=shape.lag_rad, backward=shape.backward)
+            at = Found(dataclasses.replace(start, axial_mm=z), item.di_map, item.severity, shape=shape)
             left[z, shape] = unexplained_by(at, PATTERN_ORDERS)
         return left[z, shape]
 

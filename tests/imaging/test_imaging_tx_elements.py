@@ -289,9 +289,9 @@ def test_a_lag_is_kept_only_where_the_echoes_fit_it_decisively_better_than_none(
     # What the echo fit leaves along the line: least at 180 mm with no lag (1.0), at 170 mm with lag 1
     # (``lagged_left``); a lag must leave less than none by more than ECHO_RIVAL_MARGIN (10 %).
     def unexplained_by(at: multidefect.Found, orders: int) -> float:
-        z, lag = at.estimate.axial_mm, at.forward_lag_rad
-        best_z, least = (180.0, 1.0) if lag == 0.0 and not at.backward else (170.0, lagged_left)
-        return least + ((z - best_z) / 20.0) ** 2 + (0.0 if lag in (0.0, 1.0) and not at.backward else 5.0)
+        z, lag = at.estimate.axial_mm, at.shape.lag_rad
+        best_z, least = (180.0, 1.0) if lag == 0.0 and not at.shape.backward else (170.0, lagged_left)
+        return least + ((z - best_z) / 20.0) ** 2 + (0.0 if lag in (0.0, 1.0) and not at.shape.backward else 5.0)
 
     item = multidefect.Found(Estimate(176.0, 50.0, 0.1), None, 0.0)  # type: ignore[arg-type]
     line = multidefect._line_fit(item, item.estimate, 40.0, 2.0, 398.0, unexplained_by,
@@ -317,11 +317,11 @@ def test_a_sparse_rings_defect_is_placed_along_its_line_with_the_echo_shape_its_
     placed = multidefect._echo_fit_shape(scene, along, unexplained)  # last, once its line and angle are fixed
     assert placed.estimate.axial_mm == pytest.approx(180.0, abs=1.0)
     assert placed.estimate.angle_deg == pytest.approx(50.0, abs=1.0)
-    assert (placed.forward_lag_rad, placed.backward) == (lag_rad, backward) and placed.map_peak == item.estimate
+    assert placed.shape == multidefect.EchoShape(lag_rad, backward) and placed.map_peak == item.estimate
     off = dataclasses.replace(placed, estimate=dataclasses.replace(placed.estimate, angle_deg=62.0))
     turned = multidefect._echo_fit_angle(off, unexplained, scene.n_rx)  # turned back with the shape it was placed with
     assert turned.estimate.angle_deg == pytest.approx(50.0, abs=1.0)
-    assert (turned.forward_lag_rad, turned.backward) == (lag_rad, backward)
+    assert turned.shape == multidefect.EchoShape(lag_rad, backward)
 
 
 def _bumps(grid: Grid, peaks: list[tuple[float, float, float]]) -> DIMap:
