@@ -284,26 +284,26 @@ def gram_whitening(gram: np.ndarray, dtype: type = np.float32) -> np.ndarray:
     ``gram`` itself gets the ridge (callers pass a sum they drop): no ridged copy of it is made."""
     stacked = np.moveaxis(gram, (0, 1), (-2, -1))
     diagonal = np.arange(stacked.shape[-1])
-    largest = stacked[..., diagonal, diagonal].real.max(axis=-1)
-    empty = largest <= 0  # no path to the pixel: nothing to whiten
-    _add_ridge(stacked)
+    empty = stacked[..., diagonal, diagonal].real.max(axis=-1) <= 0  # no path to the pixel: nothing to whiten
+    ridge = _add_ridge(stacked)
     try:
         lower = np.linalg.cholesky(stacked)
     except np.linalg.LinAlgError:  # a sum rounded indefinite beyond the ridge: its eigenvalues floored at the ridge
         values, vectors = np.linalg.eigh(stacked)
-        floor = GRAM_RIDGE * np.maximum(largest, 1e-300)[..., None]
-        lower = np.linalg.cholesky((vectors * np.maximum(values, floor)[..., None, :]) @ np.conj(np.swapaxes(vectors, -1, -2)))
+        floored = np.maximum(values, ridge[..., None])
+        lower = np.linalg.cholesky((vectors * floored[..., None, :]) @ np.conj(np.swapaxes(vectors, -1, -2)))
     factors = np.linalg.inv(lower)
     factors[empty] = 0.0  # (1 / sqrt of the ridge's floor would overflow single precision; its sums are 0)
     return pack_lower(factors, dtype)
 
 
-def _add_ridge(stacked: np.ndarray) -> None:
+def _add_ridge(stacked: np.ndarray) -> np.ndarray:
     """Add GRAM_RIDGE x each [..., G, G] Gram's largest diagonal term (at least a tiny absolute one) to
-    its diagonal, in place (no [..., G, G] ridge term is built)."""
+    its diagonal, in place (no [..., G, G] ridge term is built); the ridge added to each [...]."""
     diagonal = np.arange(stacked.shape[-1])
     ridge = GRAM_RIDGE * np.maximum(stacked[..., diagonal, diagonal].real.max(axis=-1), 1e-300)
     stacked[..., diagonal, diagonal] += ridge[..., None]
+    return ridge
 
 
 def _with_ridge(stacked: np.ndarray) -> np.ndarray:
