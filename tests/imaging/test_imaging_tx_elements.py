@@ -13,7 +13,7 @@ from imaging import gather, multidefect
 from imaging.analysis import analyze
 from imaging.arrivals import analytic_noise_correlation, end_reflection_coefficients, hann_burst, reference_amplitude
 from imaging.dimap import DIMap
-from imaging.echofit import fit_echoes, fit_smooth_echoes, group_waves
+from imaging.echofit import FIT_RCOND, fit_echoes, fit_smooth_echoes, group_waves
 from imaging.features import residual_feature
 from imaging.grid import Grid
 from imaging.localize import Estimate
@@ -176,9 +176,9 @@ def _dense_group_fit(record: np.ndarray, scene: Scene, positions: list, shared: 
     columns = waves.reshape(n_rx, -1, record.shape[1])
     gram, rhs = columns @ columns.transpose(0, 2, 1), columns @ record[:, :, None]
     if not shared:
-        coef = (np.linalg.pinv(gram, rtol=1e-6, hermitian=True) @ rhs)[:, :, 0]
+        coef = (np.linalg.pinv(gram, rtol=FIT_RCOND, hermitian=True) @ rhs)[:, :, 0]
     else:  # one amplitude per column, the same on every receiver (SMOOTH_ORDERS = 0)
-        coef = np.broadcast_to(np.linalg.pinv(gram.sum(axis=0), rtol=1e-6, hermitian=True) @ rhs.sum(axis=0)[:, 0],
+        coef = np.broadcast_to(np.linalg.pinv(gram.sum(axis=0), rtol=FIT_RCOND, hermitian=True) @ rhs.sum(axis=0)[:, 0],
                                (n_rx, columns.shape[1]))
     fitted = np.einsum("mpan,mpa->mpn", waves.reshape(n_rx, n_pos, -1, record.shape[1]), coef.reshape(n_rx, n_pos, -1))
     return [fitted[:, p] for p in range(n_pos)]
@@ -186,8 +186,8 @@ def _dense_group_fit(record: np.ndarray, scene: Scene, positions: list, shared: 
 
 @pytest.mark.parametrize("shared", [True, False])
 def test_an_element_models_fit_leaves_out_what_no_record_reaches_and_fits_the_same(shared):
-    # A short record: many of a position's path groups reach it on no receiver (zero columns) and the
-    # last samples no echo reaches. Left out, the fit is the written-out one's; a position none of
+    # A short record: many of a position's path groups reach it on no receiver (zero columns), and no
+    # echo reaches its first half. Left out, the fit is the written-out one's; a position none of
     # whose echoes reaches the record is fitted with nothing, alone or beside another.
     model = _ring_model(8, 75e3, tx_images=1, near_end_mm=-150.0, far_end_mm=550.0, near_reflection=1.0,
                         far_reflection=1.0)  # end echoes: the groups of paths by way of either end
