@@ -33,6 +33,7 @@ from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
 FIT_RCOND = 1e-6  # relative cut-off on the Gram matrix's singular values (1e-3 on the design's)
+EXTENT_STEP_WAVELENGTHS = 0.125  # an extended scatterer's parts lie at most this far apart (``extent_offsets_mm``)
 
 
 def burst_pair(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:
@@ -66,18 +67,32 @@ def _partial_products(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[
     return shapes, table
 
 
-def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.ndarray:
-    """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths]."""
+def _arrival_samples(scene: Scene, positions: list[tuple[float, float]],
+                     arc_offset_mm: np.ndarray | float = 0.0) -> np.ndarray:
+    """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths] (``arc_offset_mm``
+    per position: ``stacked_paths``')."""
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
     c_mm_s = scene.velocity_m_s * MM_PER_M
-    _groups, length, _w = stacked_paths(scene.model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
+    offset = np.asarray(arc_offset_mm, dtype=np.float64)
+    _groups, length, _w = stacked_paths(scene.model, z[None, :], rel, 0.0,
+                                        offset[None, :] if offset.ndim else offset)  # [n_paths, n_rx, n_positions]
     samples = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     return np.ascontiguousarray(samples.transpose(1, 2, 0))
 
 
+def extent_offsets_mm(extent_mm: float, wavelength_mm: float) -> np.ndarray:
+    """Where round the pipe (mm from its centre) the parts of a scatterer ``extent_mm`` wide lie: the centres of
+    equal segments at most EXTENT_STEP_WAVELENGTHS long; the centre alone for no extent."""
+    if not extent_mm > 0.0:
+        return np.zeros(1)
+    parts = max(2, math.ceil(extent_mm / (EXTENT_STEP_WAVELENGTHS * wavelength_mm)))
+    return ((np.arange(parts) + 0.5) / parts - 0.5) * extent_mm
+
+
 def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
-                lags_rad: Sequence[float] | None = None, backward: Sequence[bool] | None = None) -> np.ndarray:
+                lags_rad: Sequence[float] | None = None, backward: Sequence[bool] | None = None,
+                extents_mm: Sequence[float] | None = None) -> np.ndarray:
     """Each position's echo along each coherence group, as it reaches each receiver: [n_rx, n_pos, n_groups, 2, n]
     (burst and quadrature twin), the group's paths added with their weights and cut to the record.
 
@@ -89,9 +104,13 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     ``backward`` (one per position, default none): each path's weight times (1 - cos psi) / 2, a scatterer
     that sends nothing straight on and most straight back, as a thinning of the wall does to first order
     (docs/imaging.md, "A backward weight tried beside the lags on sparse rings").
+    ``extents_mm`` (one per position, default none): a scatterer that long round the pipe, a line of points
+    (``extent_offsets_mm``) of equal strength whose paths share their centre's groups: a notch wider round the
+    pipe than a wavelength's fraction radiates as a line, not a point (docs/imaging.md, "A defect's extent round
+    the pipe"). Any model, with or without Tx elements.
     Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
-    t = _group_terms(scene, positions, n, lags_rad, backward)
+    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm)
     return group_columns(t.rx, t.pos, t.group, t.starts, t.c, t.s, t.shapes,
                          (scene.n_rx, len(positions), coherence_groups(scene.model), n))
 
@@ -110,27 +129,33 @@ class _Terms(NamedTuple):
 
 
 def _group_terms(scene: Scene, positions: list[tuple[float, float]], n: int, lags_rad: Sequence[float] | None,
-                 backward: Sequence[bool] | None) -> _Terms:
-    """``group_waves``' path terms that reach the record (``_Terms``)."""
+                 backward: Sequence[bool] | None, extents_mm: Sequence[float] | None = None) -> _Terms:
+    """``group_waves``' path terms that reach the record (``_Terms``): every part of every position (its extent's
+    ``extent_offsets_mm``) along every path, each part weighted 1 / parts."""
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
     size = shapes.shape[1]
-    z = np.array([p[0] for p in positions], dtype=np.float64)
-    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
-    groups, length, weight = stacked_paths(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])  # [P, m, pos]
+    parts = [extent_offsets_mm(e, scene.wavelength_mm) for e in (extents_mm or [0.0] * len(positions))]
+    owner = np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)])  # each part's position
+    offset_mm = np.concatenate(parts)[None, :]
+    share = np.concatenate([np.full(p.size, 1.0 / p.size) for p in parts])
+    z = np.array([p[0] for p in positions], dtype=np.float64)[owner][None, :]
+    rel = np.array([p[1] for p in positions], dtype=np.float64)[owner][None, :] - scene.rx_angles_deg[:, None]
+    rx = scene.rx_angles_deg[:, None]
+    groups, length, weight = stacked_paths(scene.model, z, rel, rx, offset_mm)  # [P, m, part]
     k = np.floor((length / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
     keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
-    p_idx, m_idx, pos_idx = np.nonzero(keep)
-    c, s = weight[keep], None
+    p_idx, m_idx, part_idx = np.nonzero(keep)
+    c, s = (weight * share)[keep], None
     lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
     weighted = backward is not None and any(backward)
     if lagged or weighted:
-        cos_psi = element_scattering_cosines(scene.model, z[None, :], rel, scene.rx_angles_deg[:, None])
+        cos_psi = element_scattering_cosines(scene.model, z, rel, rx, offset_mm)
     if weighted:
-        c = c * np.where(np.asarray(backward, dtype=bool)[None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
+        c = c * np.where(np.asarray(backward, dtype=bool)[owner][None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
     if lagged:
-        phase = (np.asarray(lags_rad, dtype=np.float64)[None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, pos]
+        phase = (np.asarray(lags_rad, dtype=np.float64)[owner][None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, part]
         c, s = c * np.cos(phase), c * np.sin(phase)
-    return _Terms(m_idx, pos_idx, groups[p_idx], k[keep], c, s, shapes)
+    return _Terms(m_idx, owner[part_idx], groups[p_idx], k[keep], c, s, shapes)
 
 
 def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: int) -> np.ndarray:
@@ -145,13 +170,14 @@ def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: i
 
 def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
                      shared: bool, lags_rad: Sequence[float] | None = None,
-                     backward: Sequence[bool] | None = None) -> list[np.ndarray]:
+                     backward: Sequence[bool] | None = None,
+                     extents_mm: Sequence[float] | None = None) -> list[np.ndarray]:
     """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
-    path, on ``group_waves`` (``lags_rad``: its forward lags; ``backward``: its backward weight): the fit for a
-    model with Tx elements."""
+    path, on ``group_waves`` (``lags_rad``: its forward lags; ``backward``: its backward weight; ``extents_mm``:
+    its extents): the fit for a model with Tx elements."""
     n_rx, n = residual.shape
     n_pos, n_groups = len(positions), coherence_groups(scene.model)
-    t = _group_terms(scene, positions, n, lags_rad, backward)
+    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm)
     if not t.starts.size:  # no echo of any position reaches the record: nothing to fit
         return [np.zeros((n_rx, n)) for _ in positions]
     # Only the columns (position, group) some path reaches the record along, over the samples those paths
@@ -256,7 +282,8 @@ SMOOTH_ORDERS = 0  # Fourier orders of a path's amplitude over the receivers' be
 
 def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],
                       orders: int = SMOOTH_ORDERS, lags_rad: Sequence[float] | None = None,
-                      backward: Sequence[bool] | None = None) -> list[np.ndarray]:
+                      backward: Sequence[bool] | None = None,
+                      extents_mm: Sequence[float] | None = None) -> list[np.ndarray]:
     """Like ``fit_echoes``, but each path's amplitude is shared by the receivers (the map's own model).
 
     The coherent map (imaging/multipath.py) scores a point scatterer with one complex amplitude
@@ -273,14 +300,17 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     wherever they overlap one of this defect's many paths, so the weaker of two defects vanished
     with the stronger one's fit (full-wave dev set: a second notch of DI 0.15 left at 0.03).
     ``lags_rad``: each position's forward lag, ``backward``: whether its paths carry the backward weight
-    (``group_waves``); a model with Tx elements only.
+    (``group_waves``); a model with Tx elements only. ``extents_mm``: each position's extent round the pipe
+    (``group_waves``), any model: on the plane-wave model each part of a line is a point of its own in the Gram
+    matrix, its blocks then added into the line's (the parts share the line's unknowns).
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
     if not positions:
         return []
     if scene.model.elements:
-        return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad, backward=backward)
+        return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad, backward=backward,
+                                extents_mm=extents_mm)
     if backward is not None and any(backward):
         raise ValueError("a backward weight is fitted only for a model with Tx elements")
     if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
@@ -289,44 +319,72 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     shapes, table = _partial_products(scene.fs_hz, scene.excitation_hz, scene.cycles)
     size = shapes.shape[1]
     n_pos = len(positions)
-    samples = _arrival_samples(scene, positions)  # [m, pos, P]
-    z = np.array([p[0] for p in positions], dtype=np.float64)
-    rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
-    _g, _length, weight = stacked_paths(scene.model, z[None, :], rel)  # [P, m, pos]
+    # A line (``extents_mm``) is fitted as its parts (``extent_offsets_mm``), each a point whose columns carry its
+    # share of the line's amplitudes: the parts' Gram blocks are added into their line's below.
+    parts = [extent_offsets_mm(e, scene.wavelength_mm) for e in (extents_mm or [0.0] * n_pos)]
+    owner_of = np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)])  # each part's position
+    offset_mm = np.concatenate(parts)
+    share = np.concatenate([np.full(p.size, 1.0 / p.size) for p in parts])
+    part_positions = [positions[i] for i in owner_of]
+    n_parts = len(part_positions)
+    samples = _arrival_samples(scene, part_positions, offset_mm)  # [m, part, P]
+    z = np.array([p[0] for p in part_positions], dtype=np.float64)
+    rel = np.array([p[1] for p in part_positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
+    _g, _length, weight = stacked_paths(scene.model, z[None, :], rel, 0.0, offset_mm[None, :])  # [P, m, part]
+    weight = weight * share
     # A path whose burst lies outside the record on every receiver, for every position, has no
     # column anywhere (its unknowns would be zero): leave it out (most of a model's further turns
     # round the pipe and end echoes arrive after the record; the Gram matrix grows as their square).
-    in_record = (samples < n) & (samples + size > 0) & scene.rx_mask[:, None, None]  # [m, pos, P]
+    in_record = (samples < n) & (samples + size > 0) & scene.rx_mask[:, None, None]  # [m, part, P]
     inside = in_record.any(axis=(0, 1))
     samples, in_record, weight = samples[:, :, inside], in_record[:, :, inside], weight[inside]
     n_paths = samples.shape[2]
-    basis_arr = _bearing_basis(scene, positions, orders)  # [m, pos, K]
+    basis_arr = _bearing_basis(scene, positions, orders)[:, owner_of]  # [m, part, K]: the line's centre's bearing
     n_basis = basis_arr.shape[-1]
-    # Columns per receiver: (position, path, shape), shape fastest.
+    # Columns per receiver: (part, path, shape), shape fastest.
     starts = np.repeat(samples.reshape(n_rx, -1), 2, axis=1)
     kind = np.tile(np.array([0, 1]), (n_rx, starts.shape[1] // 2))
     valid = np.repeat(in_record.reshape(n_rx, -1), 2, axis=1)
     starts = np.where(valid, starts, 0)
     gram, rhs = normal_equations(residual, starts, kind, valid, shapes, table)
-    owner = np.repeat(np.arange(n_pos), n_paths * 2)[None, :].repeat(n_rx, axis=0)
-    # Map column (pos, path, shape) on receiver m to unknowns (pos, path, basis, shape).
-    n_cols = n_pos * n_paths * 2
-    w = weight.transpose(1, 2, 0)  # [m, pos, P]
-    if n_basis == 1:  # one amplitude per path: the mapping below is diagonal, a column's weight w_mp
-        wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)  # the basis is the constant 1
-        big_gram = np.einsum("ma,mab,mb->ab", wc, gram, wc)
-        unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ np.einsum("ma,ma->a", wc, rhs)
-        return list(synthesise(wc * unknowns[None, :], starts, kind, valid, owner, shapes, n_pos, n))
-    # Column (pos, path, shape) on receiver m carries unknowns (pos, path, shape, k) with weights
-    # w_mp * basis_k(d_m): the mapping is block-diagonal, one row of K weights per column.
+    owner = np.repeat(owner_of, n_paths * 2)[None, :].repeat(n_rx, axis=0)
+    # Column (part, path, shape) on receiver m carries unknowns (position, path, shape, k) with weights
+    # w_mp * basis_k(d_m): one row of K weights per column (K = 1: the constant alone, one amplitude per path).
+    w = weight.transpose(1, 2, 0)  # [m, part, P]
     wc = np.repeat(w.reshape(n_rx, -1), 2, axis=1)[:, :, None] * np.repeat(
         np.repeat(basis_arr, n_paths, axis=1), 2, axis=1)  # [m, column, K]
-    big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(n_cols * n_basis, -1)
-    big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
-    unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
-    coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(n_cols, n_basis))
+    n_cols = n_parts * n_paths * 2
+    if n_parts > n_pos:
+        coef = _line_coefficients(gram, rhs, wc, owner_of, n_pos, n_paths)
+    elif n_basis == 1:  # points, one amplitude per path: the mapping is diagonal, a column's weight w_mp
+        big_gram = np.einsum("ma,mab,mb->ab", wc[..., 0], gram, wc[..., 0])
+        unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ np.einsum("ma,ma->a", wc[..., 0], rhs)
+        coef = wc[..., 0] * unknowns[None, :]
+    else:  # points: the mapping is block-diagonal
+        big_gram = np.einsum("mak,mab,mbl->akbl", wc, gram, wc, optimize=True).reshape(n_cols * n_basis, -1)
+        big_rhs = np.einsum("mak,ma->ak", wc, rhs).ravel()
+        unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ big_rhs
+        coef = np.einsum("mak,ak->ma", wc, unknowns.reshape(n_cols, n_basis))
     return list(synthesise(coef, starts, kind, valid, owner, shapes, n_pos, n))
 
+
+
+def _line_coefficients(gram: np.ndarray, rhs: np.ndarray, wc: np.ndarray, owner_of: np.ndarray, n_pos: int,
+                       n_paths: int) -> np.ndarray:
+    """``fit_smooth_echoes``' column coefficients [m, column] when some positions are lines: the columns
+    (part, path, shape) of a line's parts share the line's unknowns (position, path, shape, k). The map M [m,
+    column, unknown] holds each column's K weights ``wc`` [m, column, K]; the unknowns' normal equations are
+    M^T G M and M^T r summed over the receivers (``gram`` [m, column, column], ``rhs`` [m, column])."""
+    n_rx, n_cols, n_basis = wc.shape
+    per_position = n_paths * 2
+    column_unknown = np.repeat(owner_of, per_position) * per_position + np.tile(np.arange(per_position), owner_of.size)
+    mapping = np.zeros((n_rx, n_cols, n_pos * per_position * n_basis))
+    for k in range(n_basis):
+        mapping[:, np.arange(n_cols), column_unknown * n_basis + k] = wc[:, :, k]
+    flat = mapping.reshape(n_rx * n_cols, -1)
+    big_gram = flat.T @ np.matmul(gram, mapping).reshape(n_rx * n_cols, -1)
+    unknowns = np.linalg.pinv(big_gram, rtol=FIT_RCOND, hermitian=True) @ (flat.T @ rhs.ravel())
+    return mapping @ unknowns
 
 
 def literal_fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],

@@ -121,8 +121,11 @@ ECHO_FIT_STEP_MM = 8.0  # ... searched at this step first (the fit's minimum is 
 # best (position, b) kept where it leaves decisively less than no lag (``forward_lags``, ``_line_fit``): a
 # notch's forward field lags (docs/imaging.md, "A forward lag fitted on sparse rings").
 FORWARD_LAGS_RAD: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0)
+EXTENTS_MM: tuple[float, ...] = (10.0, 20.0, 30.0, 40.0)  # ... and, on any ring, lines this long round the pipe
 BACKWARD_WEIGHT = True  # ... and each path's amplitude weighted by (1 - cos psi) / 2 tried beside them (``echo_shapes``)
 ECHO_RIVAL_WAVELENGTHS = 2.0  # the echo fit's profile is searched this far either side of where it placed a defect
+NOISE_MIN_SAMPLES = 64  # a receiver's noise is measured on at least this many samples before the first arrival
+NOISE_FLOOR_SIGMAS = 3.0  # ... and the floor taken this many standard errors of that measurement below it
 ECHO_RIVAL_MARGIN = 0.1  # ... for a local minimum leaving at most (1 + this) x the best: a rival position
 ECHO_RIVAL_MIN_WAVELENGTHS = 0.5  # ... at least this far from the placed one (closer: the same minimum's flank)
 ECHO_START_RATIO = 0.85  # the map's local maxima this close to its peak's height within that reach (and half a
@@ -143,11 +146,13 @@ class MultiDefectError(ValueError):
 @dataclass(frozen=True)
 class EchoShape:
     """How a defect's echoes are modelled beyond the map's point: each path's carrier lagging by ``lag_rad``
-    (1 - cos psi), and (``backward``) its amplitude weighted by (1 - cos psi) / 2 (imaging/echofit.py
-    ``group_waves``; a model with Tx elements only)."""
+    (1 - cos psi), and (``backward``) its amplitude weighted by (1 - cos psi) / 2 (a model with Tx elements
+    only); a line ``extent_mm`` long round the pipe instead of a point (any model) (imaging/echofit.py
+    ``group_waves``)."""
 
     lag_rad: float = 0.0
     backward: bool = False
+    extent_mm: float = 0.0
 
 
 PLAIN = EchoShape()  # the map's isotropic point
@@ -162,8 +167,8 @@ class Found:
     severity: float
     runner_up_di: float | None = None  # the best peak outside CONFIDENCE_EXCLUSION_MM, refined alike
     map_peak: Estimate | None = None  # the map's peak, when the position comes from the echo fit instead
-    shape: EchoShape = PLAIN  # its echoes' shape: a forward lag, the backward weight, where that fits decisively
-    #                           better than the plain point (sparse rings, ``_echo_fit_shape``)
+    shape: EchoShape = PLAIN  # its echoes' shape: a forward lag, the backward weight (sparse rings), an extent round
+    #                           the pipe, where that fits decisively better than the plain point (``_echo_fit_shape``)
     axial_rivals_mm: tuple[float, ...] = ()  # where along its line its echoes fit nearly as well (``_echo_rivals``)
 
     @property
@@ -281,7 +286,9 @@ class _Search:
         positions = [(f.estimate.axial_mm, f.estimate.angle_deg) for f in found]
         scene = dataclasses.replace(self.scene, model=dataclasses.replace(self.scene.model, wraps=wraps or FIT_WRAPS))
         lags, backward = [f.shape.lag_rad for f in found], [f.shape.backward for f in found]
-        fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders, lags_rad=lags, backward=backward)
+        extents = [f.shape.extent_mm for f in found]
+        fits = (fit_smooth_echoes(self.original, scene, positions, orders=orders, lags_rad=lags, backward=backward,
+                                  extents_mm=extents)
                 if shared
                 else fit_echoes(self.original, scene, positions))
         project = self.scene.project
@@ -321,6 +328,23 @@ class _Search:
             if left <= explained:
                 best, explained = ring, left
         return best
+
+    def noise_floor(self) -> float:
+        """What no fit of scatterers can explain of the record: every receiver not imaged, whole, and the noise
+        of the imaged ones: the residual's mean square before the direct wave can reach the Rx ring (nothing the
+        pipe does arrives earlier; a quarter burst spare) times the record's length, less NOISE_FLOOR_SIGMAS
+        standard errors of that estimate (so that a floor measured on few samples is not taken for more than
+        it is). No noise where the record holds fewer than NOISE_MIN_SAMPLES such samples."""
+        scene, residual = self.scene, self.original
+        burst = scene.cycles / scene.excitation_hz * scene.fs_hz
+        first = (scene.model.tx_rx_distance_mm / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz
+        quiet = min(residual.shape[-1], max(0, math.floor(first - burst / 4)))
+        masked = float(np.sum(residual[~scene.rx_mask] ** 2))
+        imaged = int(np.count_nonzero(scene.rx_mask))
+        if quiet < NOISE_MIN_SAMPLES or not imaged:
+            return masked
+        noise = float(np.sum(np.mean(residual[scene.rx_mask, :quiet] ** 2, axis=-1))) * residual.shape[-1]
+        return masked + noise * max(0.0, 1.0 - NOISE_FLOOR_SIGMAS * math.sqrt(2.0 / (quiet * imaged)))
 
     def found(self, values: np.ndarray, di_map: DIMap, estimate: Estimate) -> Found:
         runner_up = _runner_up(self.local_image(values), di_map, estimate, self.scene.circumference_mm)
@@ -535,22 +559,24 @@ def _echo_fitted(search: _Search, item: Found, others: list[Found]) -> Found:
     trial position fitted jointly with the ``others``' echoes (``_unexplained_by``)."""
     unexplained = _unexplained_by(search, others)
     turned = _echo_fit_angle(_echo_fit_axial(search.scene, item, unexplained), unexplained, search.scene.n_rx)
-    return _echo_fit_shape(search.scene, turned, unexplained)
+    return _echo_fit_shape(search.scene, turned, unexplained, search.noise_floor())
 
 
-def _echo_fit_shape(scene: Scene, item: Found, unexplained_by: Unexplained) -> Found:
+def _echo_fit_shape(scene: Scene, item: Found, unexplained_by: Unexplained, floor: float = 0.0) -> Found:
     """A placed and turned defect (``_echo_fit_axial``, ``_echo_fit_angle``) placed once more along its line with
-    the echo shapes of ``echo_shapes`` (forward lags, the backward weight) beside the position (``_line_fit``: a
-    shape kept only where it leaves decisively less than the plain point), within the same stretch. Last, once
+    the echo shapes of ``echo_shapes`` (forward lags, the backward weight, lines round the pipe) beside the
+    position (``_line_fit``: a shape kept only where it leaves decisively less than the plain point), within the
+    same stretch. Last, once
     its line and angle are fixed with the plain point: a shape is freedom that also absorbs a wrong line's or a
     wrong angle's mismatch (a synthetic scatterer with no lag, 1.25 deg round the pipe from the line it was
-    fitted along, took lag 2 and moved 6 mm)."""
+    fitted along, took lag 2 and moved 6 mm). ``floor``: what no fit explains (``_Search.noise_floor``), taken
+    off both sides of that comparison: a noisy record's noise is no shape's to explain."""
     shapes = echo_shapes(scene.model)
     span = _echo_fit_span(scene, item)
     if item.map_peak is None or len(shapes) < 2 or span is None:
         return item
     first, last = _inside_the_span(scene.grid)
-    line = _line_fit(item, item.estimate, span, first, last, unexplained_by, shapes)
+    line = _line_fit(item, item.estimate, span, first, last, unexplained_by, shapes, floor)
     if line is None or line.shape == PLAIN:
         return item
     return dataclasses.replace(item, estimate=dataclasses.replace(item.estimate, axial_mm=line.axial_mm),
@@ -674,17 +700,20 @@ def echo_shapes(model: PathModel) -> tuple[EchoShape, ...]:
     decisively less than the plain point, ``_line_fit``): each forward lag of ``forward_lags`` (the first: none,
     PLAIN) and, on a sparse ring's element model where BACKWARD_WEIGHT, the backward weight: a thinning of the
     wall scatters, to first order, in proportion to 1 - cos psi, a mass alike every way (docs/imaging.md, "A
-    backward weight tried beside the lags on sparse rings"). With it, 8-ring cases of dev, own and two held-out draws: notches
+    backward weight tried beside the lags on sparse rings"); on any ring, lines EXTENTS_MM long round the pipe
+    (docs/imaging.md, "A defect's extent round the pipe"). With it, 8-ring cases of dev, own and two held-out draws: notches
     28.9 -> 20.4, 13.7 -> 5.5, 11.8 -> 8.4 mm, dev masses 0.3-0.9 mm closer, four defects 0.3-1.0 mm further;
     applied without the rule, a near-rigid mass went 6.6 -> 24.9 mm."""
     shapes = tuple(EchoShape(lag) for lag in forward_lags(model))
-    return shapes + ((EchoShape(backward=True),) if model.elements and BACKWARD_WEIGHT else ())
+    shapes += (EchoShape(backward=True),) if model.elements and BACKWARD_WEIGHT else ()
+    return shapes + tuple(EchoShape(extent_mm=e) for e in EXTENTS_MM)
 
 
 def _line_fit(item: Found, start: Estimate, span: float, first: float, last: float,
-              unexplained_by: Unexplained, shapes: tuple[EchoShape, ...] = (PLAIN,)) -> _LineFit | None:
+              unexplained_by: Unexplained, shapes: tuple[EchoShape, ...] = (PLAIN,), floor: float = 0.0) -> _LineFit | None:
     """``_echo_fit_axial``'s search along ``start``'s line within ``span`` of it (None: too little of the line
-    inside the imaged span, ``first`` to ``last``)."""
+    inside the imaged span, ``first`` to ``last``); a shape other than PLAIN kept only where what it leaves above
+    ``floor`` is decisively less than what the plain point leaves above it."""
     lo = max(first, start.axial_mm - span)
     hi = min(last, start.axial_mm + span)
     if not hi - lo >= 2 * ECHO_FIT_STEP_MM:
@@ -702,7 +731,7 @@ def _line_fit(item: Found, start: Estimate, span: float, first: float, last: flo
     best, shape = min(((float(z), b) for b in shapes for z in coarse), key=lambda zb: unexplained(*zb))
     if shape != PLAIN:  # a shape only where the echoes support it: decisively better than none (as a rival line must be)
         plain = min((float(z) for z in coarse), key=lambda z: unexplained(z, PLAIN))
-        if not (1.0 + ECHO_RIVAL_MARGIN) * unexplained(best, shape) < unexplained(plain, PLAIN):
+        if not (1.0 + ECHO_RIVAL_MARGIN) * max(unexplained(best, shape) - floor, 0.0) < unexplained(plain, PLAIN) - floor:
             best, shape = plain, PLAIN
     half = (coarse[1] - coarse[0]) / 2
     z0, z1, z2 = best - half, best, best + half

@@ -165,14 +165,16 @@ def _element_arcs(model: PathModel, pixel_arc_mm: np.ndarray, ndim: int) -> np.n
 
 
 def element_scattering_cosines(model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray,
-                               rx_angle_deg: float | np.ndarray = 0.0) -> np.ndarray:
+                               rx_angle_deg: float | np.ndarray = 0.0,
+                               arc_offset_mm: float | np.ndarray = 0.0) -> np.ndarray:
     """cos psi [P, *broadcast shape] of every path of ``stacked_paths`` (a model with Tx elements, same
-    order): psi the scattering angle at the pixel, between the incident wave's direction there (the
-    gradient of the incident length) and the way out to the receiver (minus the gradient of the
-    outgoing one), on the unrolled wall, end images unfolded."""
-    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg)
+    order, ``arc_offset_mm`` alike): psi the scattering angle at the pixel, between the incident wave's
+    direction there (the gradient of the incident length) and the way out to the receiver (minus the
+    gradient of the outgoing one), on the unrolled wall, end images unfolded."""
+    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg, arc_offset_mm)
     if legs is None:
-        return np.zeros((0,) + _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg))
+        return np.zeros((0,) + np.broadcast_shapes(_pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg),
+                                                   np.shape(arc_offset_mm)))
     s = _element_arcs(model, legs.pixel_arc, len(legs.shape))  # [E, ...]
     r_in = np.sqrt(np.square(legs.zeta)[:, None] + np.square(s)[None])  # [F, E, ...]
     along = (legs.sign * legs.zeta * legs.dz)[:, None, None]  # [F, 1, 1, ...]
@@ -258,23 +260,30 @@ def scatter_paths(
 
 
 def stacked_paths(
-    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray = 0.0
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray = 0.0,
+    arc_offset_mm: float | np.ndarray = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``scatter_paths`` as three arrays: groups [P] (int64), length_mm and weight [P, *broadcast shape].
 
     The same arithmetic, done once for all families and wraps (few large array operations
     instead of many small ones: what a small grid needs). With Tx elements the same paths in
     the same order, families x wraps x element images (a group then repeats).
+
+    ``arc_offset_mm`` (broadcast like the pixels): the paths of a point that far round the pipe from each
+    pixel, along the *pixel's* legs (each leg, and so each group, keeps its way and turns round the pipe
+    where the point's own shorter way would be the other): the parts of an extended scatterer
+    (imaging/echofit.py ``group_waves``) share their centre's groups.
     """
     if model.elements:
-        return _stacked_element_paths(model, axial_mm, rel_angle_deg, rx_angle_deg)
+        return _stacked_element_paths(model, axial_mm, rel_angle_deg, rx_angle_deg, arc_offset_mm)
     families = model.families()
     if not families:
-        shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg))
+        shape = np.broadcast_shapes(np.shape(axial_mm), np.shape(rel_angle_deg), np.shape(arc_offset_mm))
         return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
     z = np.asarray(axial_mm, dtype=np.float64)
     arc = signed_arc_mm(rel_angle_deg, model.circumference_mm)
-    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(arc, model.circumference_mm, model.wraps)))  # [W, ...]
+    legs = np.stack(np.broadcast_arrays(*(leg + arc_offset_mm for leg in
+                                          wrap_offsets_mm(arc, model.circumference_mm, model.wraps))))  # [W, ...]
     extra = (1,) * max(z.ndim, legs.ndim - 1)
     offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1, 1) + extra)
                                    for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
@@ -328,31 +337,35 @@ def _pixels_shape(axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg:
 
 
 def _element_legs(model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray,
-                  rx_angle_deg: float | np.ndarray) -> _ElementLegs | None:
-    """The shared geometry of ``_stacked_element_paths`` and ``element_scattering_cosines`` (None: no families)."""
+                  rx_angle_deg: float | np.ndarray, arc_offset_mm: float | np.ndarray = 0.0) -> _ElementLegs | None:
+    """The shared geometry of ``_stacked_element_paths`` and ``element_scattering_cosines`` (None: no families;
+    ``arc_offset_mm`` as ``stacked_paths``)."""
     families = model.families()
     if not families:
         return None
-    shape = _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg)
+    shape = np.broadcast_shapes(_pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg), np.shape(arc_offset_mm))
     circ = model.circumference_mm
     z = np.broadcast_to(np.asarray(axial_mm, dtype=np.float64), shape)
     rel = np.broadcast_to(np.asarray(rel_angle_deg, dtype=np.float64), shape)
-    legs = np.stack(np.broadcast_arrays(*wrap_offsets_mm(signed_arc_mm(rel, circ), circ, model.wraps)))  # [W, ...]
+    offset_mm = np.broadcast_to(np.asarray(arc_offset_mm, dtype=np.float64), shape)
+    legs = np.stack(np.broadcast_arrays(*(leg + offset_mm for leg in
+                                          wrap_offsets_mm(signed_arc_mm(rel, circ), circ, model.wraps))))  # [W, ...]
     extra = (1,) * len(shape)
     offset, sign, image, factor = (np.array([getattr(f, name) for f in families]).reshape((-1,) + extra)
                                    for name in ("in_offset_mm", "in_sign", "rx_image_mm", "factor"))
     dz = image - z[None]  # [F, ...]
-    return _ElementLegs(shape, (rel + rx_angle_deg) * (circ / 360.0), legs, sign, factor,
+    return _ElementLegs(shape, (rel + rx_angle_deg) * (circ / 360.0) + offset_mm, legs, sign, factor,
                         offset + sign * z[None], dz, np.hypot(dz[:, None], legs[None]))
 
 
 def _stacked_element_paths(
-    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray
+    model: PathModel, axial_mm: np.ndarray, rel_angle_deg: np.ndarray, rx_angle_deg: float | np.ndarray,
+    arc_offset_mm: float | np.ndarray = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``stacked_paths`` of a model with Tx elements: families x wraps x element images, in ``scatter_paths``' order."""
-    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg)
+    legs = _element_legs(model, axial_mm, rel_angle_deg, rx_angle_deg, arc_offset_mm)
     if legs is None:
-        shape = _pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg)
+        shape = np.broadcast_shapes(_pixels_shape(axial_mm, rel_angle_deg, rx_angle_deg), np.shape(arc_offset_mm))
         return np.zeros(0, np.int64), np.zeros((0,) + shape), np.zeros((0,) + shape)
     r_in, w_in = (np.moveaxis(a, 0, 1) for a in _element_incident(model, legs.zeta, legs.pixel_arc))  # [F, E, ...]
     w_out = path_weight(legs.factor[:, None], legs.dz[:, None], legs.r_out, model)

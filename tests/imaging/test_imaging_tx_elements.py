@@ -275,13 +275,15 @@ def test_echoes_weighted_backward_are_fitted_with_their_weight_and_not_without_i
                           backward=[True])
 
 
-def test_forward_lags_and_the_backward_weight_are_tried_on_a_sparse_rings_element_model_only():
+def test_forward_lags_and_the_backward_weight_are_tried_on_a_sparse_rings_element_model_only_extents_on_any():
     assert multidefect.forward_lags(_ring_model(8, 75e3)) == multidefect.FORWARD_LAGS_RAD
     assert len(multidefect.FORWARD_LAGS_RAD) > 1 and 0.0 in multidefect.FORWARD_LAGS_RAD
     assert multidefect.forward_lags(PathModel(400.0, MID_WALL_MM, 40.0)) == (0.0,)  # a plane wave: it trades with z
     shapes = multidefect.echo_shapes(_ring_model(8, 75e3))
     assert shapes[0] == multidefect.PLAIN and multidefect.EchoShape(backward=True) in shapes
-    assert multidefect.echo_shapes(PathModel(400.0, MID_WALL_MM, 40.0)) == (multidefect.PLAIN,)
+    lines = tuple(multidefect.EchoShape(extent_mm=e) for e in multidefect.EXTENTS_MM)
+    assert lines and set(lines) <= set(shapes)
+    assert multidefect.echo_shapes(PathModel(400.0, MID_WALL_MM, 40.0)) == (multidefect.PLAIN,) + lines
 
 
 @pytest.mark.parametrize(("lagged_left", "lag_kept"), [(0.8, 1.0), (0.95, 0.0)])
