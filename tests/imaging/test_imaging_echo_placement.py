@@ -74,8 +74,8 @@ def test_a_notch_without_end_echoes_is_placed_by_its_echoes_closer_than_the_maps
 
 def test_a_notch_long_round_the_pipe_is_placed_as_a_line(absorbing_pipe, monkeypatch):
     # A 35 x 8 x 1.5 mm notch (circumferential x axial x depth) 90 mm from the Rx ring: a point's echoes put it
-    # 25 mm towards the Rx ring (the own full-wave held-out draws: 21-34 mm, docs/imaging.md); a line's, with
-    # the extent its echoes fit best, within a few mm.
+    # 25 mm towards the Rx ring (held-out full-wave notches 100-137 mm from it: 10.9-33.6 mm, docs/imaging.md);
+    # a line's, with the extent its echoes fit best, within a few mm.
     spec, baseline = absorbing_pipe
     notch = Notch(axial_mm=210.0, angle_deg=340.0, circumferential_mm=35.0, axial_length_mm=8.0, depth_mm=1.5)
     current = simulate(spec.with_changes(defects=(notch,)))
