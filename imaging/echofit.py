@@ -67,18 +67,17 @@ def _partial_products(fs_hz: float, excitation_hz: float, cycles: int) -> tuple[
     return shapes, table
 
 
-def _arrival_samples(scene: Scene, positions: list[tuple[float, float]],
-                     arc_offset_mm: np.ndarray | float = 0.0) -> np.ndarray:
-    """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths] (``arc_offset_mm``
-    per position: ``stacked_paths``')."""
+def _start_samples(scene: Scene, length_mm: np.ndarray) -> np.ndarray:
+    """The sample (int64) at which a burst that travelled ``length_mm`` starts in the scene's record."""
+    return np.floor((length_mm / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
+
+
+def _arrival_samples(scene: Scene, positions: list[tuple[float, float]]) -> np.ndarray:
+    """Burst start sample of every (receiver, position, path): int64 [n_rx, n_positions, n_paths]."""
     z = np.array([p[0] for p in positions], dtype=np.float64)
     rel = np.array([p[1] for p in positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
-    c_mm_s = scene.velocity_m_s * MM_PER_M
-    offset = np.asarray(arc_offset_mm, dtype=np.float64)
-    _groups, length, _w = stacked_paths(scene.model, z[None, :], rel, 0.0,
-                                        offset[None, :] if offset.ndim else offset)  # [n_paths, n_rx, n_positions]
-    samples = np.floor((length / c_mm_s - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
-    return np.ascontiguousarray(samples.transpose(1, 2, 0))
+    _groups, length, _w = stacked_paths(scene.model, z[None, :], rel)  # [n_paths, n_rx, n_positions]
+    return np.ascontiguousarray(_start_samples(scene, length).transpose(1, 2, 0))
 
 
 def extent_offsets_mm(extent_mm: float, wavelength_mm: float) -> np.ndarray:
@@ -88,6 +87,30 @@ def extent_offsets_mm(extent_mm: float, wavelength_mm: float) -> np.ndarray:
         return np.zeros(1)
     parts = max(2, math.ceil(extent_mm / (EXTENT_STEP_WAVELENGTHS * wavelength_mm)))
     return ((np.arange(parts) + 0.5) / parts - 0.5) * extent_mm
+
+
+class _Parts(NamedTuple):
+    """Every position's parts (``extent_offsets_mm``; one, the point itself, without an extent): per part its
+    position (``owner``), its arc from the position's centre and its share of the position's amplitude."""
+
+    owner: np.ndarray
+    offset_mm: np.ndarray
+    share: np.ndarray
+
+    @classmethod
+    def of(cls, scene: Scene, n_pos: int, extents_mm: Sequence[float] | None) -> _Parts:
+        parts = [extent_offsets_mm(e, scene.wavelength_mm) for e in (extents_mm or [0.0] * n_pos)]
+        return cls(np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)]), np.concatenate(parts),
+                   np.concatenate([np.full(p.size, 1.0 / p.size) for p in parts]))
+
+    def paths(self, scene: Scene, positions: list[tuple[float, float]], rx_angle_deg: float | np.ndarray = 0.0
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(z [1, part], rel [m, part], groups [P], length_mm and weight [P, m, part]) of every part along its
+        position's legs (``stacked_paths``), each weight times the part's share."""
+        z = np.array([p[0] for p in positions], dtype=np.float64)[self.owner][None, :]
+        rel = np.array([p[1] for p in positions], dtype=np.float64)[self.owner][None, :] - scene.rx_angles_deg[:, None]
+        groups, length, weight = stacked_paths(scene.model, z, rel, rx_angle_deg, self.offset_mm[None, :])
+        return z, rel, groups, length, weight * self.share
 
 
 def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
@@ -134,28 +157,23 @@ def _group_terms(scene: Scene, positions: list[tuple[float, float]], n: int, lag
     ``extent_offsets_mm``) along every path, each part weighted 1 / parts."""
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
     size = shapes.shape[1]
-    parts = [extent_offsets_mm(e, scene.wavelength_mm) for e in (extents_mm or [0.0] * len(positions))]
-    owner = np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)])  # each part's position
-    offset_mm = np.concatenate(parts)[None, :]
-    share = np.concatenate([np.full(p.size, 1.0 / p.size) for p in parts])
-    z = np.array([p[0] for p in positions], dtype=np.float64)[owner][None, :]
-    rel = np.array([p[1] for p in positions], dtype=np.float64)[owner][None, :] - scene.rx_angles_deg[:, None]
+    parts = _Parts.of(scene, len(positions), extents_mm)
     rx = scene.rx_angles_deg[:, None]
-    groups, length, weight = stacked_paths(scene.model, z, rel, rx, offset_mm)  # [P, m, part]
-    k = np.floor((length / (scene.velocity_m_s * MM_PER_M) - scene.t0_s) * scene.fs_hz + 0.5).astype(np.int64)
+    z, rel, groups, length, weight = parts.paths(scene, positions, rx)  # [P, m, part]
+    k = _start_samples(scene, length)
     keep = (k < n) & (k + size > 0) & scene.rx_mask[None, :, None]
     p_idx, m_idx, part_idx = np.nonzero(keep)
-    c, s = (weight * share)[keep], None
+    c, s = weight[keep], None
     lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
     weighted = backward is not None and any(backward)
     if lagged or weighted:
-        cos_psi = element_scattering_cosines(scene.model, z, rel, rx, offset_mm)
+        cos_psi = element_scattering_cosines(scene.model, z, rel, rx, parts.offset_mm[None, :])
     if weighted:
-        c = c * np.where(np.asarray(backward, dtype=bool)[owner][None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
+        c = c * np.where(np.asarray(backward, dtype=bool)[parts.owner][None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
     if lagged:
-        phase = (np.asarray(lags_rad, dtype=np.float64)[owner][None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, part]
+        phase = (np.asarray(lags_rad, dtype=np.float64)[parts.owner][None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, part]
         c, s = c * np.cos(phase), c * np.sin(phase)
-    return _Terms(m_idx, owner[part_idx], groups[p_idx], k[keep], c, s, shapes)
+    return _Terms(m_idx, parts.owner[part_idx], groups[p_idx], k[keep], c, s, shapes)
 
 
 def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: int) -> np.ndarray:
@@ -321,17 +339,10 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     n_pos = len(positions)
     # A line (``extents_mm``) is fitted as its parts (``extent_offsets_mm``), each a point whose columns carry its
     # share of the line's amplitudes: the parts' Gram blocks are added into their line's below.
-    parts = [extent_offsets_mm(e, scene.wavelength_mm) for e in (extents_mm or [0.0] * n_pos)]
-    owner_of = np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)])  # each part's position
-    offset_mm = np.concatenate(parts)
-    share = np.concatenate([np.full(p.size, 1.0 / p.size) for p in parts])
-    part_positions = [positions[i] for i in owner_of]
-    n_parts = len(part_positions)
-    samples = _arrival_samples(scene, part_positions, offset_mm)  # [m, part, P]
-    z = np.array([p[0] for p in part_positions], dtype=np.float64)
-    rel = np.array([p[1] for p in part_positions], dtype=np.float64)[None, :] - scene.rx_angles_deg[:, None]
-    _g, _length, weight = stacked_paths(scene.model, z[None, :], rel, 0.0, offset_mm[None, :])  # [P, m, part]
-    weight = weight * share
+    parts = _Parts.of(scene, n_pos, extents_mm)
+    owner_of, n_parts = parts.owner, parts.owner.size
+    _z, _rel, _g, length, weight = parts.paths(scene, positions)  # [P, m, part]
+    samples = np.ascontiguousarray(_start_samples(scene, length).transpose(1, 2, 0))  # [m, part, P]
     # A path whose burst lies outside the record on every receiver, for every position, has no
     # column anywhere (its unknowns would be zero): leave it out (most of a model's further turns
     # round the pipe and end echoes arrive after the record; the Gram matrix grows as their square).

@@ -83,19 +83,24 @@ def _record(scene: Scene, extent_mm: float, noise: float, seed: int) -> np.ndarr
     return echoes + noise * np.sqrt(np.mean(echoes ** 2)) * rng.standard_normal(echoes.shape)
 
 
-@pytest.mark.parametrize(("extent_mm", "noise"), [(30.0, 0.0), (30.0, 0.5), (0.0, 0.0)])
-def test_a_line_is_placed_with_its_extent_and_a_point_as_a_point(monkeypatch, extent_mm, noise):
-    # The map put it 14 mm further on; its region round the map's peak is stubbed (the map is not what is tested).
-    # With noise half the echoes' rms (a fifth of the record) the line still fits decisively better than a point
-    # above the noise floor.
+def _shape_placed(monkeypatch, record: np.ndarray, with_floor: bool) -> multidefect.Found:
+    """The scatterer of ``_record`` placed with its echo shape (``_echo_fit_shape``) from where its map put it, 14 mm
+    further on; the region round the map's peak is stubbed (the map is not what is tested)."""
     scene = _plane_scene()
-    record = _record(scene, extent_mm, noise, seed=5)
     monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
     monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
     search = multidefect._Search(record, scene)
     item = multidefect.Found(Estimate(250.0, 100.0, 0.1), None, 0.0,  # type: ignore[arg-type]
                              map_peak=Estimate(264.0, 100.0, 0.1))
-    placed = multidefect._echo_fit_shape(scene, item, multidefect._unexplained_by(search, []), search.noise_floor())
+    floor = search.noise_floor() if with_floor else 0.0
+    return multidefect._echo_fit_shape(scene, item, multidefect._unexplained_by(search, []), floor)
+
+
+@pytest.mark.parametrize(("extent_mm", "noise"), [(30.0, 0.0), (30.0, 0.5), (0.0, 0.0)])
+def test_a_line_is_placed_with_its_extent_and_a_point_as_a_point(monkeypatch, extent_mm, noise):
+    # With noise half the echoes' rms (a fifth of the record) the line still fits decisively better than a point
+    # above the noise floor.
+    placed = _shape_placed(monkeypatch, _record(_plane_scene(), extent_mm, noise, seed=5), with_floor=True)
     assert placed.shape == multidefect.EchoShape(extent_mm=extent_mm)
     assert placed.estimate.axial_mm == pytest.approx(250.0, abs=2.0)
 
@@ -103,14 +108,7 @@ def test_a_line_is_placed_with_its_extent_and_a_point_as_a_point(monkeypatch, ex
 def test_without_the_noise_floor_a_noisy_lines_extent_is_not_decisive(monkeypatch):
     # The same noisy line judged on what the fits leave of the whole record, noise and all: 10 % of that is more
     # than the line explains beyond a point (0.2 % of the record), so the point is kept (what the floor is for).
-    scene = _plane_scene()
-    record = _record(scene, 30.0, 0.5, seed=5)
-    monkeypatch.setattr(multidefect, "peak_confidence", lambda *args, **kwargs: None)
-    monkeypatch.setattr(multidefect, "localization_region", lambda *args, **kwargs: Region(30.0, 6.0))
-    search = multidefect._Search(record, scene)
-    item = multidefect.Found(Estimate(250.0, 100.0, 0.1), None, 0.0,  # type: ignore[arg-type]
-                             map_peak=Estimate(264.0, 100.0, 0.1))
-    placed = multidefect._echo_fit_shape(scene, item, multidefect._unexplained_by(search, []), 0.0)
+    placed = _shape_placed(monkeypatch, _record(_plane_scene(), 30.0, 0.5, seed=5), with_floor=False)
     assert placed.shape == multidefect.PLAIN
 
 
