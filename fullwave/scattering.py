@@ -1,0 +1,91 @@
+"""A defect's scattered phase across a ring of receivers, measured on a record, and an exact reference for it.
+
+Without end echoes the map places a defect by how its echo's arrival changes across the ring: moving a
+scatterer by dz along the axis lengthens its path to every receiver by dz (1 - cos psi), psi the scattering
+angle (between the incident wave, +z, and the way to the receiver). A defect whose echo phase lags by
+b (1 - cos psi) is therefore imaged b / k further from the Tx ring (docs/accuracy.md). ``leg0_phases``
+measures that lag on a record pair; ``clamped_disc_pattern`` is the exact far field of a clamped (rigid)
+disc, which a heavy mass on the wall is (1 kg on 20 mm is ~100x the 4 mm wall's areal mass): the analytic
+reference the engine's scattering is checked against (tests/fullwave/test_fullwave_scattering.py) and
+bench/bench_scatter_phase.py prints beside it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.special import hankel1, jv
+
+from imaging.measurement import Measurement
+
+MAX_BEARING_DEG = 115.0  # receivers this far round from the defect, either way, are fitted
+LEGS = 3  # the echo's legs round the pipe fitted on each receiver
+SERIES_EXTRA_ORDERS = 12  # partial waves beyond ka kept in the clamped disc's series (each next one is tiny)
+
+
+def _shifted(pulse: np.ndarray, delay_samples: float) -> np.ndarray:
+    """``pulse`` delayed by a fraction of samples (Fourier shift; the record is long and quiet at its end)."""
+    n = pulse.size
+    spectrum = np.fft.rfft(pulse, 2 * n)
+    f = np.fft.rfftfreq(2 * n)
+    return np.fft.irfft(spectrum * np.exp(-2j * np.pi * f * delay_samples), 2 * n)[:n]
+
+
+def _quadrature(pulse: np.ndarray) -> np.ndarray:
+    """The pulse with its carrier a quarter period later (its Hilbert transform)."""
+    n = pulse.size
+    spectrum = np.fft.rfft(pulse, 2 * n)
+    return np.fft.irfft(spectrum * -1j, 2 * n)[:n]
+
+
+def leg0_phases(baseline: Measurement, current: Measurement, axial_mm: float, angle_deg: float,
+                velocity_m_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(1 - cos psi, leg-0 phase lag in rad relative to the receiver nearest in line, |amplitude|),
+    for the receivers within MAX_BEARING_DEG of the defect."""
+    c_mm_s = velocity_m_s * 1e3
+    circ = baseline.circumference_mm
+    dz = baseline.tx_rx_distance_mm - axial_mm
+    direct_s = baseline.tx_rx_distance_mm / c_mm_s
+    residual = current.traces.astype(np.float64) - baseline.traces.astype(np.float64)
+    rows = []
+    for m, rx_deg in enumerate(baseline.rx_angles_deg):
+        bearing = (angle_deg - float(rx_deg) + 180.0) % 360.0 - 180.0
+        if abs(bearing) > MAX_BEARING_DEG:
+            continue
+        arc = bearing * circ / 360.0
+        way = 1.0 if arc >= 0 else -1.0
+        legs = [arc, arc - way * circ, arc + way * circ][:LEGS]
+        pulse = baseline.traces[m].astype(np.float64)
+        columns = []
+        for leg in legs:
+            delay = ((axial_mm + math.hypot(dz, leg)) / c_mm_s - direct_s) * baseline.fs_hz
+            moved = _shifted(pulse, delay)
+            columns += [moved, _quadrature(moved)]
+        coef, *_ = np.linalg.lstsq(np.stack(columns, axis=1), residual[m], rcond=None)
+        amplitude = complex(coef[0], coef[1])  # in-phase + quadrature: the carrier lags by arg
+        rows.append((1.0 - dz / math.hypot(dz, arc), abs(bearing), amplitude))
+    one_minus_cos = np.array([r[0] for r in rows])
+    amplitudes = np.array([r[2] for r in rows])
+    reference = amplitudes[int(np.argmin([r[1] for r in rows]))]
+    lag = np.angle(amplitudes * np.conj(reference))  # wrapped to +-pi round the in-line receiver's
+    return one_minus_cos, lag, np.abs(amplitudes)
+
+
+def clamped_disc_pattern(ka: float, psi: np.ndarray) -> np.ndarray:
+    """The far-field pattern f(psi) of a clamped (rigid, displacement-free) disc of radius a in a 2-D scalar (SH)
+    field, k a = ``ka``, at scattering angles ``psi`` (rad; 0: forward): the exact partial-wave series
+    f = sum_n eps_n A_n cos(n psi), A_n = -J_n(ka) / H1_n(ka), eps_0 = 1, eps_n = 2 (scattering by a rigid
+    cylinder), for a unit plane wave exp(i k z) scattering into sqrt(2 / (pi k r)) exp(i (k r - pi / 4)) f(psi). The
+    time factor is exp(-i w t): a more negative phase is a shorter path. Lossless: (1 / 2 pi) times the integral
+    of |f|^2 over psi equals -Re f(0) (what the disc scatters it takes from the forward wave)."""
+    n = np.arange(math.ceil(ka) + SERIES_EXTRA_ORDERS)
+    terms = np.where(n == 0, 1.0, 2.0) * -jv(n, ka) / hankel1(n, ka)
+    return np.cos(np.outer(np.asarray(psi, dtype=np.float64), n)) @ terms
+
+
+def lag_on_one_minus_cos(x: np.ndarray, lag: np.ndarray, weight: np.ndarray) -> float:
+    """b of lag = b (1 - cos psi) through 0, least squares weighted by ``weight``."""
+    return float(np.sum(weight * x * lag) / np.sum(weight * x * x))
+
+
+__all__ = ["clamped_disc_pattern", "lag_on_one_minus_cos", "leg0_phases"]
