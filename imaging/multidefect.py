@@ -504,7 +504,8 @@ def echo_placed(model: PathModel, di: float) -> bool:
     its echoes, followed six times round the pipe with a first-order pattern, place it closer (22 of
     25 held-out notches; median 14.9 -> 6.9 mm). A scatterer nearly as strong as the direct arrival
     (the light and near-rigid masses, DI 0.65-0.93) is beyond that single-scattering point: placed,
-    9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak.
+    9 of 10 went further (map 3-19 mm off, placed 9-21), so on a dense ring it keeps the map's peak
+    (re-measured 2026-12-08 with every leg and the lines: 18 held-out light masses map 1.5-12.9, placed 13.7-19.3).
     With end echoes the map's crossing paths fix the position (reflecting 16-ring notches 0.4-2.2 mm
     median). docs/imaging.md, "A dense ring's defect without end echoes placed by its echoes"."""
     return bool(model.elements) or (len(model.families()) == 1 and di < ECHO_PLACED_MAX_DI)
