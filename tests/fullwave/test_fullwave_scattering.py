@@ -1,6 +1,6 @@
 """A heavy mass on the wall scatters as the exact clamped disc: the engine against an analytic solution.
 
-A mass of 1 kg on a 12-30 mm disc is 25-160x the 4 mm wall's areal mass, so the wall under it hardly
+A mass of 1 kg on a 12-30 mm disc is 45-280x the 4 mm wall's areal mass, so the wall under it hardly
 moves: a clamped disc. Its scattered field has an exact partial-wave series (fullwave/scattering.py),
 which shares nothing with the engine. Its phase across the ring advances as b (1 - cos psi), which
 on direct paths reads as the disc lying b / k nearer the Tx ring (docs/accuracy.md).
