@@ -4,23 +4,23 @@ Without end echoes the map places a defect by how its echo's arrival changes acr
 scatterer by dz along the axis lengthens its path to every receiver by dz (1 - cos psi), psi the scattering
 angle (between the incident wave, +z, and the way to the receiver). A defect whose echo phase lags by
 b (1 - cos psi) is therefore imaged b / k further from the Tx ring (docs/accuracy.md). ``leg0_phases``
-measures that lag on a record pair; ``clamped_disc_pattern`` is the exact far field of a clamped (rigid)
-disc, which a heavy mass on the wall is (1 kg on 20 mm is ~100x the 4 mm wall's areal mass): the analytic
-reference the engine's scattering is checked against (tests/fullwave/test_fullwave_scattering.py) and
-bench/bench_scatter_phase.py prints beside it.
+measures that lag on a record pair; ``clamped_disc_pattern`` (imaging/scatterers.py, re-exported) is the exact
+far field of a clamped (rigid) disc, which a heavy mass on the wall is (1 kg on 20 mm is ~100x the 4 mm wall's
+areal mass): the analytic reference the engine's scattering is checked against
+(tests/fullwave/test_fullwave_scattering.py) and bench/bench_scatter_phase.py prints beside it. The engine
+itself uses none of it.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.special import hankel1, jv
 
 from imaging.measurement import Measurement
+from imaging.scatterers import clamped_disc_pattern
 
 MAX_BEARING_DEG = 115.0  # receivers this far round from the defect, either way, are fitted
 LEGS = 3  # the echo's legs round the pipe fitted on each receiver
-SERIES_EXTRA_ORDERS = 12  # partial waves beyond ka kept in the clamped disc's series (each next one is tiny)
 
 
 def _shifted(pulse: np.ndarray, delay_samples: float) -> np.ndarray:
@@ -69,18 +69,6 @@ def leg0_phases(baseline: Measurement, current: Measurement, axial_mm: float, an
     reference = amplitudes[int(np.argmin([r[1] for r in rows]))]
     lag = np.angle(amplitudes * np.conj(reference))  # wrapped to +-pi round the in-line receiver's
     return one_minus_cos, lag, np.abs(amplitudes)
-
-
-def clamped_disc_pattern(ka: float, psi: np.ndarray) -> np.ndarray:
-    """The far-field pattern f(psi) of a clamped (rigid, displacement-free) disc of radius a in a 2-D scalar (SH)
-    field, k a = ``ka``, at scattering angles ``psi`` (rad; 0: forward): the exact partial-wave series
-    f = sum_n eps_n A_n cos(n psi), A_n = -J_n(ka) / H1_n(ka), eps_0 = 1, eps_n = 2 (scattering by a rigid
-    cylinder), for a unit plane wave exp(i k z) scattering into sqrt(2 / (pi k r)) exp(i (k r - pi / 4)) f(psi). The
-    time factor is exp(-i w t): a more negative phase is a shorter path. Lossless: (1 / 2 pi) times the integral
-    of |f|^2 over psi equals -Re f(0) (what the disc scatters it takes from the forward wave)."""
-    n = np.arange(math.ceil(ka) + SERIES_EXTRA_ORDERS)
-    terms = np.where(n == 0, 1.0, 2.0) * -jv(n, ka) / hankel1(n, ka)
-    return np.cos(np.outer(np.asarray(psi, dtype=np.float64), n)) @ terms
 
 
 def lag_on_one_minus_cos(x: np.ndarray, lag: np.ndarray, weight: np.ndarray) -> float:

@@ -29,6 +29,7 @@ import numpy as np
 
 from imaging.fitkernels import group_columns, normal_equations, synthesise
 from imaging.paths import coherence_groups, element_scattering_cosines, scalar_paths, stacked_paths
+from imaging.scatterers import disc_weights
 from imaging.scene import Scene
 from imaging.timing import MM_PER_M
 
@@ -115,7 +116,7 @@ class _Parts(NamedTuple):
 
 def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
                 lags_rad: Sequence[float] | None = None, backward: Sequence[bool] | None = None,
-                extents_mm: Sequence[float] | None = None) -> np.ndarray:
+                extents_mm: Sequence[float] | None = None, discs_mm: Sequence[float] | None = None) -> np.ndarray:
     """Each position's echo along each coherence group, as it reaches each receiver: [n_rx, n_pos, n_groups, 2, n]
     (burst and quadrature twin), the group's paths added with their weights and cut to the record.
 
@@ -131,9 +132,12 @@ def group_waves(scene: Scene, positions: list[tuple[float, float]], n: int,
     (``extent_offsets_mm``) of equal strength whose paths share their centre's groups: a notch wider round the
     pipe than a wavelength's fraction radiates as a line, not a point (docs/imaging.md, "A defect's extent round
     the pipe"). Any model, with or without Tx elements.
+    ``discs_mm`` (one per position, default none; 0: none): each path's echo times a clamped disc's pattern of that
+    radius, f(psi) / f(0) (imaging/scatterers.py ``disc_weights``; with a lag, both): a heavy mass (docs/imaging.md,
+    "A strong scatterer on a sparse ring fitted as a clamped disc").
     Built by imaging/fitkernels.py ``group_columns`` (compiled; FFT convolution without numba).
     """
-    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm)
+    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm, discs_mm)
     return group_columns(t.rx, t.pos, t.group, t.starts, t.c, t.s, t.shapes,
                          (scene.n_rx, len(positions), coherence_groups(scene.model), n))
 
@@ -152,7 +156,8 @@ class _Terms(NamedTuple):
 
 
 def _group_terms(scene: Scene, positions: list[tuple[float, float]], n: int, lags_rad: Sequence[float] | None,
-                 backward: Sequence[bool] | None, extents_mm: Sequence[float] | None = None) -> _Terms:
+                 backward: Sequence[bool] | None, extents_mm: Sequence[float] | None = None,
+                 discs_mm: Sequence[float] | None = None) -> _Terms:
     """``group_waves``' path terms that reach the record (``_Terms``): every part of every position (its extent's
     ``extent_offsets_mm``) along every path, each part weighted 1 / parts."""
     shapes = np.stack(burst_pair(scene.fs_hz, scene.excitation_hz, scene.cycles))
@@ -166,13 +171,21 @@ def _group_terms(scene: Scene, positions: list[tuple[float, float]], n: int, lag
     c, s = weight[keep], None
     lagged = lags_rad is not None and any(lag != 0.0 for lag in lags_rad)
     weighted = backward is not None and any(backward)
-    if lagged or weighted:
+    disced = discs_mm is not None and any(r != 0.0 for r in discs_mm)
+    if lagged or weighted or disced:
         cos_psi = element_scattering_cosines(scene.model, z, rel, rx, parts.offset_mm[None, :])
     if weighted:
         c = c * np.where(np.asarray(backward, dtype=bool)[parts.owner][None, None, :], 0.5 * (1.0 - cos_psi), 1.0)[keep]
-    if lagged:
-        phase = (np.asarray(lags_rad, dtype=np.float64)[parts.owner][None, None, :] * (1.0 - cos_psi))[keep]  # [P, m, part]
-        c, s = c * np.cos(phase), c * np.sin(phase)
+    if lagged or disced:
+        pattern = np.ones(cos_psi.shape, dtype=np.complex128)  # [P, m, part]
+        if lagged:
+            pattern *= np.exp(1j * np.asarray(lags_rad, dtype=np.float64)[parts.owner][None, None, :] * (1.0 - cos_psi))
+        if disced:
+            radius = np.asarray(discs_mm, dtype=np.float64)[parts.owner]
+            for r in np.unique(radius[radius != 0.0]):
+                on = radius == r
+                pattern[:, :, on] *= disc_weights(float(r), scene.wavelength_mm, cos_psi[:, :, on])
+        c, s = c * pattern.real[keep], c * pattern.imag[keep]
     return _Terms(m_idx, parts.owner[part_idx], groups[p_idx], k[keep], c, s, shapes)
 
 
@@ -189,13 +202,14 @@ def _bearing_basis(scene: Scene, positions: list[tuple[float, float]], orders: i
 def _fit_group_waves(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]], orders: int,
                      shared: bool, lags_rad: Sequence[float] | None = None,
                      backward: Sequence[bool] | None = None,
-                     extents_mm: Sequence[float] | None = None) -> list[np.ndarray]:
+                     extents_mm: Sequence[float] | None = None,
+                     discs_mm: Sequence[float] | None = None) -> list[np.ndarray]:
     """``fit_smooth_echoes`` (``shared``) or ``fit_echoes`` with one unknown per coherence group instead of per
     path, on ``group_waves`` (``lags_rad``: its forward lags; ``backward``: its backward weight; ``extents_mm``:
-    its extents): the fit for a model with Tx elements."""
+    its extents; ``discs_mm``: its clamped discs): the fit for a model with Tx elements."""
     n_rx, n = residual.shape
     n_pos, n_groups = len(positions), coherence_groups(scene.model)
-    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm)
+    t = _group_terms(scene, positions, n, lags_rad, backward, extents_mm, discs_mm)
     if not t.starts.size:  # no echo of any position reaches the record: nothing to fit
         return [np.zeros((n_rx, n)) for _ in positions]
     # Only the columns (position, group) some path reaches the record along, over the samples those paths
@@ -301,7 +315,8 @@ SMOOTH_ORDERS = 0  # Fourier orders of a path's amplitude over the receivers' be
 def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[float, float]],
                       orders: int = SMOOTH_ORDERS, lags_rad: Sequence[float] | None = None,
                       backward: Sequence[bool] | None = None,
-                      extents_mm: Sequence[float] | None = None) -> list[np.ndarray]:
+                      extents_mm: Sequence[float] | None = None,
+                      discs_mm: Sequence[float] | None = None) -> list[np.ndarray]:
     """Like ``fit_echoes``, but each path's amplitude is shared by the receivers (the map's own model).
 
     The coherent map (imaging/multipath.py) scores a point scatterer with one complex amplitude
@@ -320,7 +335,8 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
     ``lags_rad``: each position's forward lag, ``backward``: whether its paths carry the backward weight
     (``group_waves``); a model with Tx elements only. ``extents_mm``: each position's extent round the pipe
     (``group_waves``), any model: on the plane-wave model each part of a line is a point of its own in the Gram
-    matrix, its blocks then added into the line's (the parts share the line's unknowns).
+    matrix, its blocks then added into the line's (the parts share the line's unknowns). ``discs_mm``: each
+    position's clamped disc radius (0: a point; ``group_waves``), a model with Tx elements only.
     """
     residual = np.asarray(residual, dtype=np.float64)
     n_rx, n = residual.shape
@@ -328,7 +344,9 @@ def fit_smooth_echoes(residual: np.ndarray, scene: Scene, positions: list[tuple[
         return []
     if scene.model.elements:
         return _fit_group_waves(residual, scene, positions, orders, shared=True, lags_rad=lags_rad, backward=backward,
-                                extents_mm=extents_mm)
+                                extents_mm=extents_mm, discs_mm=discs_mm)
+    if discs_mm is not None and any(r != 0.0 for r in discs_mm):
+        raise ValueError("a clamped disc is fitted only for a model with Tx elements")
     if backward is not None and any(backward):
         raise ValueError("a backward weight is fitted only for a model with Tx elements")
     if lags_rad is not None and any(lag != 0.0 for lag in lags_rad):
