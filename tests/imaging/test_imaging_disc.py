@@ -92,18 +92,16 @@ def test_a_strong_scatterer_on_a_sparse_ring_is_turned_and_placed_as_the_clamped
 
 
 @pytest.mark.usefixtures("map_region_stubbed")
-def test_a_weak_scatterer_or_a_point_is_not_made_a_disc():
+def test_a_weak_scatterer_a_point_or_a_dense_rings_defect_is_not_made_a_disc():
     scene = _scene(_ring_model())
     weak = _placed(scene, _record(scene, 10.0), 0.3)  # below ECHO_PLACED_MAX_DI: a notch, single scattering
     assert weak.shape == multidefect.PLAIN and weak.estimate.angle_deg == AT[1] - 12.0
     point = _placed(scene, _record(scene, 0.0), 0.9, (0.0, 0.0))  # a disc fits a point's echoes no better than it
     assert point.shape == multidefect.PLAIN and point.estimate.angle_deg == AT[1]
-    assert not any(
-        multidefect._echo_fit_disc(dataclasses.replace(scene, model=PathModel(400.0, MID_WALL_MM, 41.7)), item,
-                                   lambda at, orders: 1.0, 0.0).shape.disc_mm
-        for item in [multidefect.Found(Estimate(*AT, 0.9), None, 0.0)]  # type: ignore[arg-type]
-    )
-    assert math.isfinite(multidefect.ECHO_PLACED_MAX_DI)
+    plane_wave = dataclasses.replace(scene, model=PathModel(400.0, MID_WALL_MM, 41.7))  # a dense ring's model
+    strong = multidefect.Found(Estimate(*AT, 0.9), None, 0.0)  # type: ignore[arg-type]
+    discs_fit_far_better = lambda at, orders: 0.01 if at.shape.disc_mm else 1.0  # noqa: E731
+    assert multidefect._echo_fit_disc(plane_wave, strong, discs_fit_far_better, 0.0) is strong
 
 
 def test_a_heavy_mass_between_an_eight_rings_receivers_is_placed_as_a_disc_not_on_the_receivers_line(monkeypatch):
