@@ -125,6 +125,6 @@ def test_a_heavy_mass_between_an_eight_rings_receivers_is_placed_as_a_disc_not_o
         return surface_distance_mm(defects[0].axial_mm, defects[0].angle_deg, 200.0, 100.0,
                                    baseline.circumference_mm)
 
-    assert error_mm() < 4.0  # measured 1.2 mm
+    assert error_mm() < 4.0  # measured 1.4 mm
     monkeypatch.setattr(multidefect, "DISC_RADII_MM", ())
     assert error_mm() > 10.0  # measured 13.0 mm: on the receiver's line, 89 deg
