@@ -43,9 +43,10 @@ import numpy as np  # noqa: E402
 from fullwave.cache import cached_simulation  # noqa: E402
 from fullwave.defects import Defect, Mass, Notch  # noqa: E402
 from fullwave.record import PipeModel, SimulationSpec  # noqa: E402
-from fullwave.scattering import clamped_disc_pattern, lag_on_one_minus_cos, leg0_phases  # noqa: E402
+from fullwave.scattering import lag_on_one_minus_cos, leg0_phases  # noqa: E402
 from fullwave.transducers import RingLayout  # noqa: E402
 from imaging.analysis import analyze  # noqa: E402
+from imaging.scatterers import clamped_disc_pattern  # noqa: E402
 
 DEFECTS: list[tuple[str, Defect]] = [
     ("notch 20x10x2 mm", Notch(axial_mm=250.0, angle_deg=200.0)),

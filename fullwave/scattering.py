@@ -4,11 +4,10 @@ Without end echoes the map places a defect by how its echo's arrival changes acr
 scatterer by dz along the axis lengthens its path to every receiver by dz (1 - cos psi), psi the scattering
 angle (between the incident wave, +z, and the way to the receiver). A defect whose echo phase lags by
 b (1 - cos psi) is therefore imaged b / k further from the Tx ring (docs/accuracy.md). ``leg0_phases``
-measures that lag on a record pair; ``clamped_disc_pattern`` (imaging/scatterers.py, re-exported) is the exact
-far field of a clamped (rigid) disc, which a heavy mass on the wall is (1 kg on 20 mm is ~100x the 4 mm wall's
-areal mass): the analytic reference the engine's scattering is checked against
-(tests/fullwave/test_fullwave_scattering.py) and bench/bench_scatter_phase.py prints beside it. The engine
-itself uses none of it.
+measures that lag on a record pair, for the engine's scattering to be checked against the exact far field of a
+clamped (rigid) disc, which a heavy mass on the wall is (1 kg on 20 mm is ~100x the 4 mm wall's areal mass;
+imaging/scatterers.py ``clamped_disc_pattern``): tests/fullwave/test_fullwave_scattering.py and
+bench/bench_scatter_phase.py. The engine itself uses none of it.
 """
 from __future__ import annotations
 
@@ -17,7 +16,6 @@ import math
 import numpy as np
 
 from imaging.measurement import Measurement
-from imaging.scatterers import clamped_disc_pattern
 
 MAX_BEARING_DEG = 115.0  # receivers this far round from the defect, either way, are fitted
 LEGS = 3  # the echo's legs round the pipe fitted on each receiver
@@ -76,4 +74,4 @@ def lag_on_one_minus_cos(x: np.ndarray, lag: np.ndarray, weight: np.ndarray) -> 
     return float(np.sum(weight * x * lag) / np.sum(weight * x * x))
 
 
-__all__ = ["clamped_disc_pattern", "lag_on_one_minus_cos", "leg0_phases"]
+__all__ = ["lag_on_one_minus_cos", "leg0_phases"]

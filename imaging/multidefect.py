@@ -602,8 +602,7 @@ def _echo_fit_disc(scene: Scene, item: Found, unexplained_by: Unexplained, floor
         line = _line_fit(turned, turned.estimate, span, first, last, unexplained_by, (line.shape,)) or line
     placed = dataclasses.replace(turned, estimate=dataclasses.replace(turned.estimate, axial_mm=line.axial_mm),
                                  shape=line.shape)
-    left = unexplained_by(placed, PATTERN_ORDERS)
-    if not (1.0 + ECHO_RIVAL_MARGIN) * max(left - floor, 0.0) < unexplained_by(item, PATTERN_ORDERS) - floor:
+    if not _decisively_less(unexplained_by(placed, PATTERN_ORDERS), unexplained_by(item, PATTERN_ORDERS), floor):
         return item
     return dataclasses.replace(placed, axial_rivals_mm=_echo_rivals(scene, line.axial_mm, line.along_its_shape))
 
@@ -722,8 +721,15 @@ def _moves_to(other: _LineFit, best: _LineFit, own: _LineFit, wavelength_mm: flo
     ECHO_RIVAL_MARGIN (within it, it is a rival: which one is the defect the record does not say), and it lies
     at least ECHO_RIVAL_MIN_WAVELENGTHS along the axis from where the peak's own line (``own``) placed it
     (nearer, it is the same place seen at another angle, which the angle search turns the defect to)."""
-    return (other.inside and (1.0 + ECHO_RIVAL_MARGIN) * other.least < best.least
+    return (other.inside and _decisively_less(other.least, best.least)
             and abs(other.axial_mm - own.axial_mm) >= ECHO_RIVAL_MIN_WAVELENGTHS * wavelength_mm)
+
+
+def _decisively_less(left: float, than: float, floor: float = 0.0) -> bool:
+    """Does an echo fit leaving ``left`` of the record explain it decisively better than one leaving ``than``: by
+    more than ECHO_RIVAL_MARGIN, both counted above ``floor`` (what no fit explains, ``_Search.noise_floor``)?
+    The rule for a rival line, an echo shape and a clamped disc alike."""
+    return (1.0 + ECHO_RIVAL_MARGIN) * max(left - floor, 0.0) < than - floor
 
 
 def forward_lags(model: PathModel) -> tuple[float, ...]:
@@ -778,7 +784,7 @@ def _line_fit(item: Found, start: Estimate, span: float, first: float, last: flo
     best, shape = min(((float(z), b) for b in shapes for z in coarse), key=lambda zb: unexplained(*zb))
     if shape != PLAIN and PLAIN in shapes:  # a shape only where the echoes support it: decisively better than none
         plain = min((float(z) for z in coarse), key=lambda z: unexplained(z, PLAIN))
-        if not (1.0 + ECHO_RIVAL_MARGIN) * max(unexplained(best, shape) - floor, 0.0) < unexplained(plain, PLAIN) - floor:
+        if not _decisively_less(unexplained(best, shape), unexplained(plain, PLAIN), floor):
             best, shape = plain, PLAIN
     half = (coarse[1] - coarse[0]) / 2
     z0, z1, z2 = best - half, best, best + half

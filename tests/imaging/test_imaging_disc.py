@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from fullwave.scattering import lag_on_one_minus_cos
 from imaging import multidefect
 from imaging.echofit import fit_smooth_echoes, group_waves
 from imaging.grid import Grid
@@ -39,6 +40,30 @@ def _record(scene: Scene, disc_mm: float, seed: int = 5) -> np.ndarray:
     """Echoes of a scatterer at AT (a clamped disc of ``disc_mm``, 0: a point), one amplitude per path group."""
     waves = group_waves(scene, [AT], 5000, discs_mm=[disc_mm])[:, 0]
     return np.einsum("mgsn,gs->mn", waves, np.random.default_rng(seed).standard_normal(waves.shape[1:3]))
+
+
+@pytest.mark.parametrize("ka", [0.3, 1.6, 3.0])
+def test_the_clamped_disc_series_conserves_energy(ka):
+    psi = np.linspace(0.0, 2 * math.pi, 4001)
+    f = clamped_disc_pattern(ka, psi)
+    scattered = np.trapezoid(np.abs(f) ** 2, psi) / (2 * math.pi)
+    assert scattered == pytest.approx(-f[0].real, rel=1e-9)
+
+
+def test_a_larger_clamped_disc_leads_more_the_further_round_it_scatters():
+    psi = np.radians(np.arange(0.0, 91.0, 5.0))
+    x = 1.0 - np.cos(psi)
+    leads = []
+    for ka in (0.5, 1.0, 1.7, 2.5):
+        f = clamped_disc_pattern(ka, psi)
+        lag = np.angle(f * np.conj(f[0]))
+        leads.append(lag_on_one_minus_cos(x, lag, np.abs(f) / np.abs(f).max()))
+    assert all(b < 0 for b in leads)
+    assert leads == sorted(leads, reverse=True)
+    # ... and nearly as a point moved along the axis: the lag is b (1 - cos psi) within a few degrees
+    f = clamped_disc_pattern(1.7, psi)
+    lag = np.angle(f * np.conj(f[0]))
+    assert np.max(np.abs(lag - leads[2] * x)) < math.radians(6.0)
 
 
 def test_a_discs_weight_is_one_straight_on_and_a_point_is_one_everywhere():
